@@ -1,0 +1,220 @@
+//! The camera: the contract's exact mapping from pixel samples to rays, in float64.
+//!
+//! ```json
+//! {"origin": [0, 0, 0], "right": [1, 0, 0], "up": [0, 1, 0], "forward": [0, 0, 1]}
+//! {"look_from": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0], "vfov": 90}
+//! {"look_from": [0, 0, 5], "look_at": [0, 0, 0], "aperture": 0.1, "focus_distance": 5}
+//! ```
+//!
+//! Both forms reduce to a [`CameraFrame`]. For pixel `(x, y)` of a `W × H` image and an
+//! offset `(sx, sy)` in `[0, 1)²`:
+//!
+//! ```text
+//! u = (W / H) * (2 * (x + sx) / W - 1)
+//! v = 1 - 2 * (y + sy) / H
+//! direction = normalize(u * right + v * up + forward)
+//! ```
+
+use glam::DVec3;
+
+use crate::manifest::CameraDesc;
+use crate::ray::Ray;
+
+/// The basis camera: vectors used as given (their lengths zoom the film).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraFrame {
+    pub origin: DVec3,
+    pub right: DVec3,
+    pub up: DVec3,
+    pub forward: DVec3,
+}
+
+/// A thin lens: a uniform disk of `radius` (the manifest's `aperture`) focused at
+/// `focus_distance` along the view direction.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ThinLens {
+    pub radius: f64,
+    pub focus_distance: f64,
+}
+
+/// The frame of a look-at camera, or `None` when `up` is parallel to the view direction.
+/// `vfov` is the vertical field of view in degrees; the image's right is
+/// `cross(forward, up)` (OpenGL's `gluLookAt` handedness).
+pub fn look_at_frame(from: DVec3, at: DVec3, up: DVec3, vfov: f64) -> Option<CameraFrame> {
+    let forward = (at - from).normalize();
+    let side = forward.cross(up);
+    if side.length() == 0.0 || !side.is_finite() {
+        return None;
+    }
+    let half_height = (vfov.to_radians() / 2.0).tan();
+    let right = side.normalize() * half_height;
+    let true_up = right.normalize().cross(forward) * half_height;
+    Some(CameraFrame {
+        origin: from,
+        right,
+        up: true_up,
+        forward,
+    })
+}
+
+/// A camera bound to an image size.
+#[derive(Debug, Clone, Copy)]
+pub struct Camera {
+    frame: CameraFrame,
+    width: f64,
+    height: f64,
+    lens: Option<Lens>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Lens {
+    radius: f64,
+    focus_distance: f64,
+    /// Unit vectors spanning the lens disk, and the unit view direction.
+    lens_x: DVec3,
+    lens_y: DVec3,
+    axis: DVec3,
+}
+
+impl Camera {
+    pub fn new(desc: &CameraDesc, width: u32, height: u32) -> Camera {
+        let frame = desc.frame;
+        let lens = desc.lens.map(|lens| Lens {
+            radius: lens.radius,
+            focus_distance: lens.focus_distance,
+            lens_x: frame.right.normalize(),
+            lens_y: frame.up.normalize(),
+            axis: frame.forward.normalize(),
+        });
+        Camera {
+            frame,
+            width: f64::from(width),
+            height: f64::from(height),
+            lens,
+        }
+    }
+
+    /// Whether rays depend on a lens sample (see [`Camera::ray`]).
+    pub fn has_lens(&self) -> bool {
+        self.lens.is_some()
+    }
+
+    /// The ray through offset `(sx, sy)` of pixel `(x, y)`. `lens` is a point of `[0, 1)²`
+    /// mapped onto the lens disk; a pinhole camera ignores it, and `(0.5, 0.5)` is the
+    /// lens centre.
+    #[inline]
+    pub fn ray(&self, x: u32, y: u32, sx: f64, sy: f64, lens: (f64, f64)) -> Ray {
+        let (w, h) = (self.width, self.height);
+        let u = (w / h) * (2.0 * (f64::from(x) + sx) / w - 1.0);
+        let v = 1.0 - 2.0 * (f64::from(y) + sy) / h;
+        let f = &self.frame;
+        let direction = (u * f.right + v * f.up + f.forward).normalize();
+        let mut ray = Ray {
+            origin: f.origin,
+            direction,
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        };
+        if let Some(l) = &self.lens {
+            let (dx, dy) = concentric_disk(lens.0, lens.1);
+            let focus = f.origin + direction * (l.focus_distance / direction.dot(l.axis));
+            let origin = f.origin + l.radius * (dx * l.lens_x + dy * l.lens_y);
+            ray.origin = origin;
+            ray.direction = (focus - origin).normalize();
+        }
+        ray
+    }
+}
+
+/// Shirley and Chiu's area-preserving map from the unit square to the unit disk.
+fn concentric_disk(a: f64, b: f64) -> (f64, f64) {
+    let (x, y) = (2.0 * a - 1.0, 2.0 * b - 1.0);
+    if x == 0.0 && y == 0.0 {
+        return (0.0, 0.0);
+    }
+    let (r, theta) = if x.abs() > y.abs() {
+        (x, std::f64::consts::FRAC_PI_4 * (y / x))
+    } else {
+        (
+            y,
+            std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (x / y),
+        )
+    };
+    (r * theta.cos(), r * theta.sin())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pinhole(frame: CameraFrame) -> CameraDesc {
+        CameraDesc { frame, lens: None }
+    }
+
+    #[test]
+    fn look_at_right_is_world_plus_x_when_looking_down_minus_z() {
+        let frame = look_at_frame(DVec3::new(0.0, 0.0, 5.0), DVec3::ZERO, DVec3::Y, 90.0).unwrap();
+        assert!((frame.right - DVec3::X).length() < 1e-15, "{}", frame.right);
+        assert!((frame.up - DVec3::Y).length() < 1e-15, "{}", frame.up);
+        assert_eq!(frame.forward, DVec3::NEG_Z);
+    }
+
+    #[test]
+    fn look_at_scales_right_and_up_by_half_the_field_of_view() {
+        let frame = look_at_frame(DVec3::ZERO, DVec3::Z, DVec3::Y, 60.0).unwrap();
+        let k = (30f64).to_radians().tan();
+        assert!((frame.right.length() - k).abs() < 1e-15);
+        assert!((frame.up.length() - k).abs() < 1e-15);
+        // Looking down +z with up +y, the image's right is world -x: the mirror of the
+        // default basis camera.
+        assert!(frame.right.x < 0.0);
+    }
+
+    #[test]
+    fn up_parallel_to_the_view_is_refused() {
+        assert!(look_at_frame(DVec3::ZERO, DVec3::Y, DVec3::Y, 60.0).is_none());
+        assert!(look_at_frame(DVec3::ZERO, DVec3::Y, DVec3::NEG_Y * 3.0, 60.0).is_none());
+    }
+
+    #[test]
+    fn the_default_camera_maps_pixel_centres_as_the_contract_says() {
+        let frame = CameraFrame {
+            origin: DVec3::ZERO,
+            right: DVec3::X,
+            up: DVec3::Y,
+            forward: DVec3::Z,
+        };
+        let camera = Camera::new(&pinhole(frame), 640, 480);
+        for (x, y) in [(0, 0), (639, 479), (320, 240), (17, 400)] {
+            let ray = camera.ray(x, y, 0.5, 0.5, (0.5, 0.5));
+            // Integer form of the mapping: u = (2x + 1 - W) / H, v = (H - 2y - 1) / H.
+            let u = (2.0 * x as f64 + 1.0 - 640.0) / 480.0;
+            let v = (480.0 - 2.0 * y as f64 - 1.0) / 480.0;
+            let expected = DVec3::new(u, v, 1.0).normalize();
+            assert!((ray.direction - expected).length() < 1e-15, "({x}, {y})");
+            assert_eq!(ray.origin, DVec3::ZERO);
+        }
+    }
+
+    #[test]
+    fn a_thin_lens_keeps_the_focus_plane_sharp() {
+        let frame = look_at_frame(DVec3::new(0.0, 0.0, 5.0), DVec3::ZERO, DVec3::Y, 50.0).unwrap();
+        let desc = CameraDesc {
+            frame,
+            lens: Some(ThinLens {
+                radius: 0.5,
+                focus_distance: 5.0,
+            }),
+        };
+        let camera = Camera::new(&desc, 64, 48);
+        let centre = camera.ray(10, 20, 0.3, 0.7, (0.5, 0.5));
+        for lens in [(0.0, 0.0), (0.9, 0.1), (0.25, 0.75)] {
+            let ray = camera.ray(10, 20, 0.3, 0.7, lens);
+            assert!((ray.origin - frame.origin).length() <= 0.5 + 1e-12);
+            // Every lens position sees the same point of the plane z = 0.
+            let t = -ray.origin.z / ray.direction.z;
+            let t0 = -centre.origin.z / centre.direction.z;
+            assert!((ray.at(t) - centre.at(t0)).length() < 1e-12, "{lens:?}");
+        }
+    }
+}

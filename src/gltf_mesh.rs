@@ -1,0 +1,429 @@
+//! glTF 2.0 (`.gltf` and `.glb`) through the `gltf` crate's document model.
+//!
+//! The default scene is read (else scene 0, else every root node), every node recursively
+//! with its transform composed from the root, and every triangle primitive (triangles,
+//! strips and fans); points and lines are skipped with a warning. Buffers are read here
+//! (GLB chunk, `data:` URIs, files beside the glTF) and accessors decoded here, with every
+//! offset checked; images are never read or decoded.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use base64::Engine;
+use glam::{DMat4, DQuat, DVec3};
+use gltf::accessor::{DataType, Dimensions};
+use gltf::mesh::Mode;
+
+use crate::error::{MeshError, Place};
+use crate::mesh::{Geometry, Instance, MeshFile};
+
+pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
+    let fail = |place: Option<String>, message: String| MeshError::Gltf {
+        path: path.to_path_buf(),
+        place: Place(place),
+        message,
+    };
+    let gltf = gltf::Gltf::from_slice(bytes).map_err(|e| fail(None, e.to_string()))?;
+    let buffers =
+        load_buffers(&gltf, path).map_err(|(place, message)| fail(Some(place), message))?;
+    let document = &gltf.document;
+
+    let roots: Vec<gltf::Node> = match document
+        .default_scene()
+        .or_else(|| document.scenes().next())
+    {
+        Some(scene) => scene.nodes().collect(),
+        None => {
+            let mut is_child = vec![false; document.nodes().len()];
+            for node in document.nodes() {
+                for child in node.children() {
+                    is_child[child.index()] = true;
+                }
+            }
+            document.nodes().filter(|n| !is_child[n.index()]).collect()
+        }
+    };
+
+    let mut mesh = MeshFile::default();
+    // One geometry per (mesh, primitive), shared by every node that instances it.
+    let mut geometry_of: HashMap<(usize, usize), Option<usize>> = HashMap::new();
+    let mut skipped: HashMap<&'static str, usize> = HashMap::new();
+    let node_count = document.nodes().len();
+    let mut pending: Vec<(gltf::Node, DMat4, usize)> = roots
+        .into_iter()
+        .rev()
+        .map(|n| (n, DMat4::IDENTITY, 0))
+        .collect();
+    while let Some((node, parent, depth)) = pending.pop() {
+        if depth > node_count {
+            return Err(fail(
+                Some(format!("nodes[{}]", node.index())),
+                "the node hierarchy has a cycle".to_string(),
+            ));
+        }
+        let transform = parent * node_matrix(&node);
+        if let Some(node_mesh) = node.mesh() {
+            for primitive in node_mesh.primitives() {
+                let key = (node_mesh.index(), primitive.index());
+                let place = || format!("meshes[{}].primitives[{}]", key.0, key.1);
+                let geometry = match geometry_of.get(&key) {
+                    Some(g) => *g,
+                    None => {
+                        let g = match primitive.mode() {
+                            Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan => {
+                                let geometry = read_primitive(&primitive, &buffers)
+                                    .map_err(|(p, m)| fail(Some(p.unwrap_or_else(place)), m))?;
+                                mesh.geometries.push(geometry);
+                                Some(mesh.geometries.len() - 1)
+                            }
+                            Mode::Points => {
+                                *skipped.entry("point").or_default() += 1;
+                                None
+                            }
+                            Mode::Lines | Mode::LineLoop | Mode::LineStrip => {
+                                *skipped.entry("line").or_default() += 1;
+                                None
+                            }
+                        };
+                        geometry_of.insert(key, g);
+                        g
+                    }
+                };
+                if let Some(geometry) = geometry {
+                    mesh.instances.push(Instance {
+                        geometry,
+                        transform,
+                    });
+                }
+            }
+        }
+        for child in node.children().collect::<Vec<_>>().into_iter().rev() {
+            pending.push((child, transform, depth + 1));
+        }
+    }
+    let mut kinds: Vec<_> = skipped.into_iter().collect();
+    kinds.sort();
+    for (kind, count) in kinds {
+        let plural = if count == 1 { "" } else { "s" };
+        mesh.warnings.push(format!(
+            "{}: skipped {count} {kind} primitive{plural} (only triangles are rendered)",
+            path.display()
+        ));
+    }
+    Ok(mesh)
+}
+
+/// The node's local transform in float64 (column-major matrix, or T·R·S).
+fn node_matrix(node: &gltf::Node) -> DMat4 {
+    match node.transform() {
+        gltf::scene::Transform::Matrix { matrix } => {
+            DMat4::from_cols_array_2d(&matrix.map(|c| c.map(f64::from)))
+        }
+        gltf::scene::Transform::Decomposed {
+            translation,
+            rotation,
+            scale,
+        } => {
+            let [x, y, z, w] = rotation.map(f64::from);
+            let rotation = DQuat::from_xyzw(x, y, z, w);
+            // glTF requires unit quaternions; normalizing forgives rounding in the file.
+            let rotation = if rotation.length() > 0.0 {
+                rotation.normalize()
+            } else {
+                DQuat::IDENTITY
+            };
+            DMat4::from_scale_rotation_translation(
+                DVec3::from_array(scale.map(f64::from)),
+                rotation,
+                DVec3::from_array(translation.map(f64::from)),
+            )
+        }
+    }
+}
+
+type Fault = (Option<String>, String);
+
+fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Geometry, Fault> {
+    let positions = primitive
+        .get(&gltf::Semantic::Positions)
+        .ok_or((None, "has no POSITION attribute".to_string()))?;
+    let at = |accessor: &gltf::Accessor| Some(format!("accessors[{}]", accessor.index()));
+    if positions.dimensions() != Dimensions::Vec3 {
+        return Err((at(&positions), "POSITION must be a VEC3".to_string()));
+    }
+    let values = read_accessor(&positions, buffers).map_err(|m| (at(&positions), m))?;
+    let positions_f32: Vec<[f32; 3]> = values
+        .chunks_exact(3)
+        .map(|c| [c[0] as f32, c[1] as f32, c[2] as f32])
+        .collect();
+
+    let corners: Vec<u32> = match primitive.indices() {
+        Some(indices) => {
+            if indices.dimensions() != Dimensions::Scalar
+                || !matches!(
+                    indices.data_type(),
+                    DataType::U8 | DataType::U16 | DataType::U32
+                )
+            {
+                return Err((
+                    at(&indices),
+                    "indices must be unsigned integer scalars".to_string(),
+                ));
+            }
+            let values = read_accessor(&indices, buffers).map_err(|m| (at(&indices), m))?;
+            let n = positions_f32.len();
+            if let Some(bad) = values.iter().position(|&i| i as usize >= n) {
+                return Err((
+                    at(&indices),
+                    format!("index {bad} is {}, past the {n} vertices", values[bad]),
+                ));
+            }
+            values.into_iter().map(|i| i as u32).collect()
+        }
+        None => (0..positions_f32.len() as u32).collect(),
+    };
+
+    let triangles = match primitive.mode() {
+        Mode::TriangleStrip => (0..corners.len().saturating_sub(2))
+            .map(|i| {
+                // glTF 2.0, 3.7.2.1: p_i = {v_i, v_{i+(1+i%2)}, v_{i+(2-i%2)}}.
+                let odd = i % 2;
+                [corners[i], corners[i + 1 + odd], corners[i + 2 - odd]]
+            })
+            .collect(),
+        Mode::TriangleFan => (0..corners.len().saturating_sub(2))
+            .map(|i| [corners[i + 1], corners[i + 2], corners[0]])
+            .collect(),
+        _ => corners
+            .chunks_exact(3)
+            .map(|t| [t[0], t[1], t[2]])
+            .collect(),
+    };
+    Ok(Geometry {
+        positions: positions_f32,
+        triangles,
+    })
+}
+
+/// Every component of every element of an accessor, in order, as f64 (exact for all glTF
+/// component types). Sparse substitutions are applied; a missing buffer view means zeros.
+fn read_accessor(accessor: &gltf::Accessor, buffers: &[Vec<u8>]) -> Result<Vec<f64>, String> {
+    let components = accessor.dimensions().multiplicity();
+    let data_type = accessor.data_type();
+    let count = accessor.count();
+    let normalized = accessor.normalized();
+    let mut values = match accessor.view() {
+        Some(view) => {
+            let element = components * data_type.size();
+            let stride = view.stride().unwrap_or(element);
+            let bytes = view_bytes(&view, accessor.offset(), count, element, stride, buffers)?;
+            let mut values = Vec::with_capacity(count * components);
+            for i in 0..count {
+                for c in 0..components {
+                    let at = i * stride + c * data_type.size();
+                    values.push(component(&bytes[at..], data_type, normalized));
+                }
+            }
+            values
+        }
+        None => vec![0.0; count * components],
+    };
+    if let Some(sparse) = accessor.sparse() {
+        let n = sparse.count();
+        let index_type = match sparse.indices().index_type() {
+            gltf::accessor::sparse::IndexType::U8 => DataType::U8,
+            gltf::accessor::sparse::IndexType::U16 => DataType::U16,
+            gltf::accessor::sparse::IndexType::U32 => DataType::U32,
+        };
+        let index_bytes = view_bytes(
+            &sparse.indices().view(),
+            sparse.indices().offset(),
+            n,
+            index_type.size(),
+            index_type.size(),
+            buffers,
+        )
+        .map_err(|m| format!("sparse indices: {m}"))?;
+        let element = components * data_type.size();
+        let value_bytes = view_bytes(
+            &sparse.values().view(),
+            sparse.values().offset(),
+            n,
+            element,
+            element,
+            buffers,
+        )
+        .map_err(|m| format!("sparse values: {m}"))?;
+        for k in 0..n {
+            let target =
+                component(&index_bytes[k * index_type.size()..], index_type, false) as usize;
+            if target >= count {
+                return Err(format!(
+                    "sparse index {target} is past the {count} elements"
+                ));
+            }
+            for c in 0..components {
+                values[target * components + c] = component(
+                    &value_bytes[k * element + c * data_type.size()..],
+                    data_type,
+                    normalized,
+                );
+            }
+        }
+    }
+    Ok(values)
+}
+
+/// The bytes of `count` elements of `element` bytes, `stride` apart, from `offset` within
+/// `view`, after checking they lie inside both the view and its buffer.
+fn view_bytes<'a>(
+    view: &gltf::buffer::View,
+    offset: usize,
+    count: usize,
+    element: usize,
+    stride: usize,
+    buffers: &'a [Vec<u8>],
+) -> Result<&'a [u8], String> {
+    if stride < element {
+        return Err(format!(
+            "byteStride {stride} is smaller than an element ({element} bytes)"
+        ));
+    }
+    let buffer = &buffers[view.buffer().index()];
+    let span = if count == 0 {
+        0
+    } else {
+        (count - 1)
+            .checked_mul(stride)
+            .and_then(|s| s.checked_add(element))
+            .ok_or("the accessor's size overflows")?
+    };
+    let start = view
+        .offset()
+        .checked_add(offset)
+        .ok_or("offset overflows")?;
+    let end = start.checked_add(span).ok_or("offset overflows")?;
+    if offset + span > view.length() || end > buffer.len() {
+        return Err(format!(
+            "{count} elements at offset {offset} reach past bufferView {} ({} bytes) or its buffer",
+            view.index(),
+            view.length()
+        ));
+    }
+    Ok(&buffer[start..end])
+}
+
+fn component(bytes: &[u8], data_type: DataType, normalized: bool) -> f64 {
+    let raw = match data_type {
+        DataType::I8 => f64::from(bytes[0] as i8),
+        DataType::U8 => f64::from(bytes[0]),
+        DataType::I16 => f64::from(i16::from_le_bytes([bytes[0], bytes[1]])),
+        DataType::U16 => f64::from(u16::from_le_bytes([bytes[0], bytes[1]])),
+        DataType::U32 => f64::from(u32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])),
+        DataType::F32 => f64::from(f32::from_le_bytes([bytes[0], bytes[1], bytes[2], bytes[3]])),
+    };
+    if !normalized {
+        return raw;
+    }
+    // glTF 2.0, 3.11: normalized integers map to [0, 1] or [-1, 1].
+    match data_type {
+        DataType::I8 => (raw / 127.0).max(-1.0),
+        DataType::U8 => raw / 255.0,
+        DataType::I16 => (raw / 32767.0).max(-1.0),
+        DataType::U16 => raw / 65535.0,
+        _ => raw,
+    }
+}
+
+/// Every buffer's bytes: the GLB binary chunk, a `data:` URI, or a file beside the glTF.
+fn load_buffers(gltf: &gltf::Gltf, path: &Path) -> Result<Vec<Vec<u8>>, (String, String)> {
+    let folder = path.parent().unwrap_or(Path::new(""));
+    let mut blob = gltf.blob.as_deref();
+    let mut buffers = Vec::new();
+    for buffer in gltf.document.buffers() {
+        let place = format!("buffers[{}]", buffer.index());
+        let data = match buffer.source() {
+            gltf::buffer::Source::Bin => blob
+                .take()
+                .ok_or((
+                    place.clone(),
+                    "refers to a GLB binary chunk that is missing".to_string(),
+                ))?
+                .to_vec(),
+            gltf::buffer::Source::Uri(uri) => {
+                read_uri(uri, folder).map_err(|m| (place.clone(), m))?
+            }
+        };
+        if data.len() < buffer.length() {
+            return Err((
+                place,
+                format!(
+                    "holds {} bytes but declares {}",
+                    data.len(),
+                    buffer.length()
+                ),
+            ));
+        }
+        buffers.push(data);
+    }
+    Ok(buffers)
+}
+
+fn read_uri(uri: &str, folder: &Path) -> Result<Vec<u8>, String> {
+    if let Some(rest) = uri.strip_prefix("data:") {
+        let (_, payload) = rest
+            .split_once(";base64,")
+            .ok_or("only base64 data URIs are supported")?;
+        return base64::engine::general_purpose::STANDARD
+            .decode(payload)
+            .map_err(|e| format!("bad base64 data: {e}"));
+    }
+    if uri.contains("://") || uri.starts_with("file:") {
+        return Err(format!(
+            "unsupported URI `{uri}` (use a path relative to the glTF file)"
+        ));
+    }
+    let relative = percent_decode(uri).ok_or_else(|| format!("malformed URI `{uri}`"))?;
+    let file = folder.join(relative);
+    std::fs::read(&file).map_err(|e| format!("cannot read {}: {e}", file.display()))
+}
+
+/// Decodes `%XX` escapes of a relative URI; `None` for a bad escape or invalid UTF-8.
+fn percent_decode(uri: &str) -> Option<String> {
+    let bytes = uri.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        if bytes[i] == b'%' {
+            let hex = std::str::from_utf8(bytes.get(i + 1..i + 3)?).ok()?;
+            out.push(u8::from_str_radix(hex, 16).ok()?);
+            i += 3;
+        } else {
+            out.push(bytes[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8(out).ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percent_escapes_decode_and_bad_ones_are_refused() {
+        assert_eq!(percent_decode("a%20b.bin").as_deref(), Some("a b.bin"));
+        assert_eq!(percent_decode("plain.bin").as_deref(), Some("plain.bin"));
+        assert_eq!(percent_decode("bad%2"), None);
+        assert_eq!(percent_decode("bad%zz"), None);
+        assert_eq!(percent_decode("%ff"), None);
+    }
+
+    #[test]
+    fn normalized_components_follow_the_spec() {
+        assert_eq!(component(&[127], DataType::I8, true), 1.0);
+        assert_eq!(component(&[128], DataType::I8, true), -1.0);
+        assert_eq!(component(&[255], DataType::U8, true), 1.0);
+        assert_eq!(component(&[0xff, 0xff], DataType::U16, true), 1.0);
+    }
+}

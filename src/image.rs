@@ -1,0 +1,266 @@
+//! Images as written: 8-bit PPM (`P3` text or `P6` bytes) or float32 PFM.
+//!
+//! A pixel's value (the mean of its samples) is stored in its final form at once: for PPM
+//! each channel, after the transfer function, becomes `floor(clamp(c * 256, 0, 255))`; for
+//! PFM it is the linear value as float32. Files are written to a temporary name beside the
+//! target and renamed, so a failed or interrupted job never leaves a partial image.
+
+use std::io::{self, Write};
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::manifest::{Encoding, OutputFormat, PpmStyle, Rgb};
+
+/// Pixels in their stored form, row-major from the top-left.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Pixels {
+    /// Three bytes per pixel.
+    Rgb8(Vec<u8>),
+    /// Three floats per pixel.
+    RgbF32(Vec<f32>),
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub format: OutputFormat,
+    pub encoding: Encoding,
+    pub pixels: Pixels,
+}
+
+impl Image {
+    /// A black image.
+    pub fn new(width: u32, height: u32, format: OutputFormat, encoding: Encoding) -> Image {
+        let n = width as usize * height as usize * 3;
+        let pixels = match format {
+            OutputFormat::Ppm(_) => Pixels::Rgb8(vec![0; n]),
+            OutputFormat::Pfm => Pixels::RgbF32(vec![0.0; n]),
+        };
+        Image {
+            width,
+            height,
+            format,
+            encoding,
+            pixels,
+        }
+    }
+
+    /// Stores the linear value of pixel `(x, y)`.
+    pub fn set(&mut self, x: u32, y: u32, value: Rgb) {
+        let height = self.height;
+        let mut bands = self.bands_mut(height);
+        bands[0].set(x, y, value);
+    }
+
+    /// The image cut into horizontal bands of `rows` rows (the last may be shorter), each
+    /// writable on its own thread.
+    pub fn bands_mut(&mut self, rows: u32) -> Vec<Band<'_>> {
+        let stride = self.width as usize * 3 * rows.max(1) as usize;
+        let (width, encoding) = (self.width, self.encoding);
+        let band = |i: usize, data| Band {
+            y0: i as u32 * rows,
+            width,
+            encoding,
+            data,
+        };
+        match &mut self.pixels {
+            Pixels::Rgb8(bytes) => bytes
+                .chunks_mut(stride)
+                .enumerate()
+                .map(|(i, c)| band(i, BandData::Rgb8(c)))
+                .collect(),
+            Pixels::RgbF32(floats) => floats
+                .chunks_mut(stride)
+                .enumerate()
+                .map(|(i, c)| band(i, BandData::RgbF32(c)))
+                .collect(),
+        }
+    }
+
+    /// The complete file contents.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let (w, h) = (self.width as usize, self.height as usize);
+        match (&self.pixels, self.format) {
+            (Pixels::Rgb8(bytes), OutputFormat::Ppm(PpmStyle::Binary)) => {
+                let mut out = format!("P6\n{w} {h}\n255\n").into_bytes();
+                out.extend_from_slice(bytes);
+                out
+            }
+            (Pixels::Rgb8(bytes), _) => {
+                let mut out = format!("P3\n{w} {h}\n255\n").into_bytes();
+                out.reserve(bytes.len() * 4);
+                for pixel in bytes.chunks_exact(3) {
+                    let _ = writeln!(out, "{} {} {}", pixel[0], pixel[1], pixel[2]);
+                }
+                out
+            }
+            (Pixels::RgbF32(floats), _) => {
+                let mut out = format!("PF\n{w} {h}\n-1.0\n").into_bytes();
+                out.reserve(floats.len() * 4);
+                // PFM stores the bottom row first.
+                for row in floats.chunks_exact(w * 3).rev() {
+                    for value in row {
+                        out.extend_from_slice(&value.to_le_bytes());
+                    }
+                }
+                out
+            }
+        }
+    }
+
+    /// Writes the image to `path` atomically (see [`write_atomically`]).
+    pub fn write(&self, path: &Path) -> io::Result<()> {
+        write_atomically(path, &self.to_bytes())
+    }
+}
+
+/// Rows `y0..y0 + rows()` of an [`Image`].
+#[derive(Debug)]
+pub struct Band<'a> {
+    pub y0: u32,
+    width: u32,
+    encoding: Encoding,
+    data: BandData<'a>,
+}
+
+#[derive(Debug)]
+enum BandData<'a> {
+    Rgb8(&'a mut [u8]),
+    RgbF32(&'a mut [f32]),
+}
+
+impl Band<'_> {
+    /// Rows in this band.
+    pub fn rows(&self) -> u32 {
+        let len = match &self.data {
+            BandData::Rgb8(d) => d.len(),
+            BandData::RgbF32(d) => d.len(),
+        };
+        (len / (self.width as usize * 3)) as u32
+    }
+
+    /// Stores the linear value of pixel `(x, y0 + dy)`.
+    #[inline]
+    pub fn set(&mut self, x: u32, dy: u32, value: Rgb) {
+        let at = (dy as usize * self.width as usize + x as usize) * 3;
+        match &mut self.data {
+            BandData::Rgb8(bytes) => {
+                for c in 0..3 {
+                    bytes[at + c] = quantize(encode(value[c], self.encoding));
+                }
+            }
+            BandData::RgbF32(floats) => {
+                for c in 0..3 {
+                    floats[at + c] = value[c] as f32;
+                }
+            }
+        }
+    }
+}
+
+/// The transfer function: identity, or the sRGB curve.
+#[inline]
+pub fn encode(c: f64, encoding: Encoding) -> f64 {
+    match encoding {
+        Encoding::Linear => c,
+        Encoding::Srgb => {
+            if c <= 0.0031308 {
+                12.92 * c
+            } else {
+                1.055 * c.powf(1.0 / 2.4) - 0.055
+            }
+        }
+    }
+}
+
+/// `floor(clamp(c * 256, 0, 255))`; NaN becomes 0.
+#[inline]
+pub fn quantize(c: f64) -> u8 {
+    let scaled = c * 256.0;
+    if scaled >= 255.0 {
+        255
+    } else if scaled > 0.0 {
+        scaled as u8
+    } else {
+        0
+    }
+}
+
+/// Writes `bytes` to a hidden temporary file beside `path`, then renames it over `path`:
+/// readers see the old file or the whole new one, never a part. Creates missing parent
+/// folders. On failure the temporary file is removed.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let name = path
+        .file_name()
+        .ok_or_else(|| io::Error::new(io::ErrorKind::InvalidInput, "not a file name"))?;
+    let folder = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    std::fs::create_dir_all(folder)?;
+    let mut temporary_name = std::ffi::OsString::from(".");
+    temporary_name.push(name);
+    temporary_name.push(format!(
+        ".{}-{}.tmp",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    ));
+    let temporary = folder.join(temporary_name);
+    let result = std::fs::write(&temporary, bytes).and_then(|()| std::fs::rename(&temporary, path));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temporary);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantization_is_floor_of_256c_clamped() {
+        let cases = [
+            (0.0, 0),
+            (-1.0, 0),
+            (f64::NAN, 0),
+            (1.0 / 256.0, 1),
+            (1.0 / 256.0 - 1e-12, 0),
+            (0.5, 128),
+            (254.999 / 256.0, 254),
+            (255.0 / 256.0, 255),
+            (1.0, 255),
+            (7.0, 255),
+        ];
+        for (c, expected) in cases {
+            assert_eq!(quantize(c), expected, "{c}");
+        }
+    }
+
+    #[test]
+    fn srgb_follows_the_standard_curve() {
+        assert_eq!(encode(0.002, Encoding::Srgb), 12.92 * 0.002);
+        let c: f64 = 0.5;
+        assert_eq!(encode(c, Encoding::Srgb), 1.055 * c.powf(1.0 / 2.4) - 0.055);
+        assert!((encode(1.0, Encoding::Srgb) - 1.0).abs() < 1e-12);
+        assert_eq!(encode(0.3, Encoding::Linear), 0.3);
+    }
+
+    #[test]
+    fn pfm_rows_are_stored_bottom_first() {
+        let mut image = Image::new(2, 2, OutputFormat::Pfm, Encoding::Srgb);
+        image.set(0, 0, [1.0, 2.0, 3.0]);
+        image.set(1, 1, [4.0, 5.0, 6.0]);
+        let bytes = image.to_bytes();
+        let header = b"PF\n2 2\n-1.0\n";
+        assert_eq!(&bytes[..header.len()], header);
+        let floats: Vec<f32> = bytes[header.len()..]
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        // Bottom row first: (0,1), (1,1), then (0,0), (1,0). PFM is never sRGB-encoded.
+        assert_eq!(&floats[3..6], &[4.0, 5.0, 6.0]);
+        assert_eq!(&floats[6..9], &[1.0, 2.0, 3.0]);
+    }
+}

@@ -1,0 +1,72 @@
+//! What a camera ray computes. The set is closed and each render loop is specialized for
+//! one integrator, so nothing is dispatched dynamically per ray.
+//!
+//! ```json
+//! {"type": "hit"}
+//! {"type": "depth", "scale": 10}
+//! {"type": "normal"}
+//! ```
+
+use crate::manifest::Rgb;
+use crate::ray::Ray;
+use crate::scene::Scene;
+
+/// The value of one camera ray (linear RGB).
+pub trait Integrator: Sync {
+    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb;
+}
+
+/// `hit`: `[1, 1, 1]` where the ray hits anything, else the background. An any-hit
+/// query: it stops at the first primitive found, whichever is nearest.
+#[derive(Debug, Clone, Copy)]
+pub struct HitIntegrator {
+    pub background: Rgb,
+}
+
+impl Integrator for HitIntegrator {
+    #[inline]
+    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb {
+        if scene.any_hit(ray) {
+            [1.0; 3]
+        } else {
+            self.background
+        }
+    }
+}
+
+/// `depth`: `[t, t, t] / scale` for the closest hit, else the background.
+#[derive(Debug, Clone, Copy)]
+pub struct DepthIntegrator {
+    pub scale: f64,
+    pub background: Rgb,
+}
+
+impl Integrator for DepthIntegrator {
+    #[inline]
+    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb {
+        match scene.closest_hit(ray) {
+            Some(hit) => [hit.t / self.scale; 3],
+            None => self.background,
+        }
+    }
+}
+
+/// `normal`: `0.5 * (n + 1)` for the unit geometric normal `n` of the closest hit, not
+/// flipped toward the ray; else the background.
+#[derive(Debug, Clone, Copy)]
+pub struct NormalIntegrator {
+    pub background: Rgb,
+}
+
+impl Integrator for NormalIntegrator {
+    #[inline]
+    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb {
+        match scene.closest_hit(ray) {
+            Some(hit) => {
+                let n = scene.normal(ray, &hit);
+                [0.5 * (n.x + 1.0), 0.5 * (n.y + 1.0), 0.5 * (n.z + 1.0)]
+            }
+            None => self.background,
+        }
+    }
+}

@@ -1,0 +1,230 @@
+//! Jobs and batches: one manifest in, one image out, and a report either way.
+//!
+//! A [`Batch`] runs jobs one after another (each renders on all threads), shares mesh files
+//! between them, and refuses to let two jobs write the same file. A failed job writes
+//! nothing and does not stop the batch.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde_json::json;
+
+use crate::error::{Error, JobError};
+use crate::manifest::Manifest;
+use crate::mesh::MeshCache;
+use crate::render;
+use crate::scene::{Scene, SceneGeometry};
+
+/// Settings shared by every job of a batch.
+#[derive(Debug, Clone, Default)]
+pub struct JobOptions {
+    /// Write every output as `DIR/<file name of its output>` instead of where the manifest
+    /// says.
+    pub out_dir: Option<PathBuf>,
+}
+
+/// What happened to one job. Figures that were not reached are `None`.
+#[derive(Debug)]
+pub struct JobReport {
+    pub manifest: PathBuf,
+    pub output: Option<PathBuf>,
+    pub error: Option<JobError>,
+    /// Things skipped on the way that the user should know about.
+    pub warnings: Vec<String>,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub spp: Option<u32>,
+    pub integrator: Option<&'static str>,
+    pub triangles: Option<usize>,
+    pub spheres: Option<usize>,
+    pub planes: Option<usize>,
+    /// Seconds reading the manifest and meshes, building trees, rendering, writing.
+    pub load_s: f64,
+    pub build_s: f64,
+    pub render_s: f64,
+    pub write_s: f64,
+}
+
+impl JobReport {
+    fn new(manifest: &Path) -> JobReport {
+        JobReport {
+            manifest: manifest.to_path_buf(),
+            output: None,
+            error: None,
+            warnings: Vec::new(),
+            width: None,
+            height: None,
+            spp: None,
+            integrator: None,
+            triangles: None,
+            spheres: None,
+            planes: None,
+            load_s: 0.0,
+            build_s: 0.0,
+            render_s: 0.0,
+            write_s: 0.0,
+        }
+    }
+
+    pub fn ok(&self) -> bool {
+        self.error.is_none()
+    }
+
+    /// Camera rays traced (pixels × samples).
+    pub fn camera_rays(&self) -> Option<u64> {
+        Some(u64::from(self.width?) * u64::from(self.height?) * u64::from(self.spp?))
+    }
+
+    /// One line of `--stats` output.
+    pub fn to_json(&self) -> serde_json::Value {
+        json!({
+            "manifest": self.manifest.display().to_string(),
+            "output": self.output.as_ref().map(|p| p.display().to_string()),
+            "ok": self.ok(),
+            "error": self.error.as_ref().map(|e| e.error.to_string()),
+            "integrator": self.integrator,
+            "triangles": self.triangles,
+            "spheres": self.spheres,
+            "planes": self.planes,
+            "width": self.width,
+            "height": self.height,
+            "spp": self.spp,
+            "camera_rays": self.camera_rays(),
+            "load_s": self.load_s,
+            "build_s": self.build_s,
+            "render_s": self.render_s,
+            "write_s": self.write_s,
+            "warnings": self.warnings,
+        })
+    }
+}
+
+/// Runs jobs and remembers what they share.
+#[derive(Debug, Default)]
+pub struct Batch {
+    options: JobOptions,
+    meshes: MeshCache,
+    /// Output files written so far, and the manifest that wrote each.
+    written: HashMap<PathBuf, PathBuf>,
+}
+
+impl Batch {
+    pub fn new(options: JobOptions) -> Batch {
+        Batch {
+            options,
+            ..Batch::default()
+        }
+    }
+
+    /// Mesh files read so far.
+    pub fn meshes(&self) -> &MeshCache {
+        &self.meshes
+    }
+
+    /// Renders the manifest at `path`. `progress` receives finished pixel counts.
+    pub fn run(&mut self, path: &Path, progress: &(dyn Fn(u64) + Sync)) -> JobReport {
+        let mut report = JobReport::new(path);
+        if let Err(error) = self.run_inner(path, &mut report, progress) {
+            report.error = Some(JobError {
+                manifest: path.to_path_buf(),
+                error,
+            });
+        }
+        report
+    }
+
+    fn run_inner(
+        &mut self,
+        path: &Path,
+        report: &mut JobReport,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<(), Error> {
+        let start = Instant::now();
+        let manifest = Manifest::load(path)?;
+        report.width = Some(manifest.width);
+        report.height = Some(manifest.height);
+        report.spp = Some(manifest.sampler.spp);
+        report.integrator = Some(manifest.integrator.name());
+        render::check_supported(&manifest)?;
+
+        let output = self.output_path(&manifest);
+        report.output = Some(output.clone());
+        let key = output_key(&output);
+        if let Some(other) = self.written.get(&key) {
+            return Err(Error::OutputClash {
+                path: output,
+                other: other.clone(),
+            });
+        }
+
+        let geometry = SceneGeometry::load(&manifest, &mut self.meshes)?;
+        report.warnings = geometry.warnings.clone();
+        report.load_s = start.elapsed().as_secs_f64();
+
+        let start = Instant::now();
+        let scene = Scene::build(geometry);
+        let counts = scene.counts();
+        report.triangles = Some(counts.triangles);
+        report.spheres = Some(counts.spheres);
+        report.planes = Some(counts.planes);
+        report.build_s = start.elapsed().as_secs_f64();
+
+        let start = Instant::now();
+        let image = render::render(&scene, &manifest, progress)?;
+        report.render_s = start.elapsed().as_secs_f64();
+        drop(scene);
+
+        let start = Instant::now();
+        image.write(&output).map_err(|source| Error::Output {
+            path: output.clone(),
+            source,
+        })?;
+        report.write_s = start.elapsed().as_secs_f64();
+        self.written.insert(key, path.to_path_buf());
+        Ok(())
+    }
+
+    /// Where this job's image goes: the manifest's `output` (resolved against its folder),
+    /// or with `out_dir` that file's name inside `out_dir`.
+    pub fn output_path(&self, manifest: &Manifest) -> PathBuf {
+        match &self.options.out_dir {
+            Some(dir) => dir.join(manifest.output.file_name().unwrap_or_default()),
+            None => manifest.output.clone(),
+        }
+    }
+}
+
+/// A path that names the same file however it was spelled (`a/../b`, `./b`, `b`).
+fn output_key(path: &Path) -> PathBuf {
+    let absolute = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let mut key = PathBuf::new();
+    for component in absolute.components() {
+        match component {
+            std::path::Component::ParentDir => {
+                key.pop();
+            }
+            std::path::Component::CurDir => {}
+            other => key.push(other),
+        }
+    }
+    key
+}
+
+/// The manifests a command-line `PATH` names: the file itself, or every `*.json` directly
+/// inside a folder, in sorted order.
+pub fn manifests_in(path: &Path) -> std::io::Result<Vec<PathBuf>> {
+    if !path.is_dir() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let mut manifests = Vec::new();
+    for entry in std::fs::read_dir(path)? {
+        let entry = entry?;
+        let file = entry.path();
+        if file.extension().is_some_and(|e| e == "json") && file.is_file() {
+            manifests.push(file);
+        }
+    }
+    manifests.sort();
+    Ok(manifests)
+}

@@ -1,0 +1,48 @@
+//! raybatch renders JSON scene manifests (spheres, planes, OBJ and glTF meshes) to PPM and
+//! PFM images, one job per manifest, a folder at a time.
+//!
+//! The pieces, in the order a job uses them:
+//!
+//! - [`manifest`]: JSON text to a checked [`Manifest`] (no files besides the manifest read);
+//! - [`scene`]: meshes loaded ([`mesh`], [`obj`], [`gltf_mesh`]) and placed, then the
+//!   acceleration trees built ([`bvh`]) into a [`Scene`] that answers closest-hit and
+//!   any-hit queries; intersection in [`sphere`], [`plane`] and [`triangle`];
+//! - [`render`]: camera rays ([`camera`], [`sampler`]) through an [`integrator`] into an
+//!   [`image`], written atomically;
+//! - [`job`]: the above with timings and a report, and batches of jobs.
+//!
+//! ```no_run
+//! use raybatch::{Manifest, Scene, SceneGeometry, mesh::MeshCache};
+//!
+//! let manifest = Manifest::load("scenes/canonical.json".as_ref())?;
+//! let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new())?;
+//! let scene = Scene::build(geometry);
+//! let image = raybatch::render::render(&scene, &manifest, &|_| {})?;
+//! image.write(&manifest.output)?;
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+pub mod bvh;
+pub mod camera;
+pub mod error;
+pub mod gltf_mesh;
+pub mod image;
+pub mod integrator;
+pub mod job;
+pub mod manifest;
+pub mod mesh;
+pub mod obj;
+pub mod plane;
+pub mod procedural;
+pub mod ray;
+pub mod render;
+pub mod sampler;
+pub mod scene;
+pub mod sphere;
+pub mod transform;
+pub mod triangle;
+
+pub use error::{Error, JobError, ManifestError, MeshError};
+pub use manifest::Manifest;
+pub use ray::Ray;
+pub use scene::{Hit, Scene, SceneGeometry};

@@ -1,0 +1,135 @@
+//! Rendering an image: camera rays through every pixel sample, in parallel over bands of
+//! rows (rayon), each band walked in square tiles so neighbouring rays stay together.
+//! A pixel's value depends only on the scene and its samples, never on the thread that
+//! computed it, so the bytes do not depend on the thread count.
+
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::error::ManifestError;
+use crate::image::Image;
+use crate::integrator::{DepthIntegrator, HitIntegrator, Integrator, NormalIntegrator};
+use crate::manifest::{IntegratorDesc, Manifest};
+use crate::sampler::Sampler;
+use crate::scene::Scene;
+
+/// Side of the square tiles, in pixels; also the height of a parallel band.
+pub const TILE: u32 = 16;
+
+/// Everything besides the scene that decides a pixel.
+#[derive(Debug, Clone, Copy)]
+pub struct View {
+    pub camera: Camera,
+    pub sampler: Sampler,
+    pub tmin: f64,
+    pub tmax: f64,
+}
+
+impl View {
+    pub fn new(manifest: &Manifest) -> View {
+        View {
+            camera: Camera::new(&manifest.camera, manifest.width, manifest.height),
+            sampler: Sampler::new(&manifest.sampler),
+            tmin: manifest.tmin,
+            tmax: manifest.tmax,
+        }
+    }
+}
+
+/// Refuses manifests whose integrator this version cannot render yet.
+pub fn check_supported(manifest: &Manifest) -> Result<(), ManifestError> {
+    match manifest.integrator {
+        IntegratorDesc::Hit | IntegratorDesc::Depth { .. } | IntegratorDesc::Normal => Ok(()),
+        other => Err(ManifestError::invalid(
+            "integrator.type",
+            format!(
+                "`{}` is part of the format but not implemented in this version (hit, depth and normal are)",
+                other.name()
+            ),
+        )),
+    }
+}
+
+/// Renders the manifest's image of `scene`. `progress` is called with the number of pixels
+/// finished, band by band, from any thread.
+pub fn render(
+    scene: &Scene,
+    manifest: &Manifest,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Image, ManifestError> {
+    check_supported(manifest)?;
+    let view = View::new(manifest);
+    let mut image = Image::new(
+        manifest.width,
+        manifest.height,
+        manifest.format,
+        manifest.encoding,
+    );
+    let background = manifest.background;
+    match manifest.integrator {
+        IntegratorDesc::Hit => render_with(
+            scene,
+            &HitIntegrator { background },
+            &view,
+            &mut image,
+            progress,
+        ),
+        IntegratorDesc::Depth { scale } => render_with(
+            scene,
+            &DepthIntegrator { scale, background },
+            &view,
+            &mut image,
+            progress,
+        ),
+        IntegratorDesc::Normal => render_with(
+            scene,
+            &NormalIntegrator { background },
+            &view,
+            &mut image,
+            progress,
+        ),
+        _ => unreachable!("checked by check_supported"),
+    }
+    Ok(image)
+}
+
+/// Renders every pixel of `image` with one integrator, specialized at compile time.
+pub fn render_with<I: Integrator>(
+    scene: &Scene,
+    integrator: &I,
+    view: &View,
+    image: &mut Image,
+    progress: &(dyn Fn(u64) + Sync),
+) {
+    let width = image.width;
+    let spp = view.sampler.spp();
+    image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
+        let rows = band.rows();
+        for x0 in (0..width).step_by(TILE as usize) {
+            for dy in 0..rows {
+                let y = band.y0 + dy;
+                for x in x0..(x0 + TILE).min(width) {
+                    let mut sum = [0.0f64; 3];
+                    for s in 0..spp {
+                        let (sx, sy) = view.sampler.pixel_offset(x, y, s);
+                        let lens = if view.camera.has_lens() {
+                            view.sampler.lens(x, y, s)
+                        } else {
+                            (0.5, 0.5)
+                        };
+                        let mut ray = view.camera.ray(x, y, sx, sy, lens);
+                        ray.tmin = view.tmin;
+                        ray.tmax = view.tmax;
+                        let value = integrator.value(scene, &ray);
+                        for c in 0..3 {
+                            sum[c] += value[c];
+                        }
+                    }
+                    let mean = sum.map(|c| c / f64::from(spp));
+                    band.set(x, dy, mean);
+                }
+            }
+        }
+        progress(u64::from(rows) * u64::from(width));
+    });
+}

@@ -1,0 +1,463 @@
+//! The built scene: geometry in world space with its acceleration structures, ready for
+//! rays. Built from a checked [`Manifest`] in two steps so each can be timed:
+//! [`SceneGeometry::load`] reads meshes and places them, [`Scene::build`] builds the trees.
+//!
+//! Spheres and planes are intersected in float64, triangles in float32 (as mesh data is):
+//! a float64 camera ray is rounded once for the triangles, with `tmin` rounded down and
+//! `tmax` rounded up so the strict interval test is exactly the float64 one.
+
+use std::sync::Arc;
+
+use glam::{DMat4, DVec3, Vec3};
+use obvhs::aabb::Aabb;
+
+use crate::bvh::{self, Bounds, BoxRay, BuildPreset, Bvh};
+use crate::error::{Error, MeshError};
+use crate::manifest::{MAX_MAGNITUDE, Manifest};
+use crate::mesh::{MeshCache, MeshFile};
+use crate::plane::Plane;
+use crate::ray::Ray;
+use crate::sphere::Sphere;
+use crate::triangle::{self, ShearedRay, TriangleHit};
+
+/// Triangles tested together; one leaf holds one or more blocks.
+pub const BLOCK: usize = 4;
+
+/// Most triangles one leaf holds.
+const TRIANGLES_PER_LEAF: u32 = 8;
+/// Most spheres one leaf holds.
+const SPHERES_PER_LEAF: u32 = 4;
+
+/// World-space geometry before acceleration structures are built.
+#[derive(Debug, Clone, Default)]
+pub struct SceneGeometry {
+    /// Every mesh triangle, vertices in stored order.
+    pub triangles: Vec<[[f32; 3]; 3]>,
+    pub spheres: Vec<Sphere>,
+    pub planes: Vec<Plane>,
+    /// Skipped content worth telling the user about.
+    pub warnings: Vec<String>,
+}
+
+impl SceneGeometry {
+    /// Reads the manifest's meshes (through `cache`) and places every primitive.
+    pub fn load(manifest: &Manifest, cache: &mut MeshCache) -> Result<SceneGeometry, Error> {
+        let mut geometry = SceneGeometry {
+            spheres: manifest
+                .spheres
+                .iter()
+                .map(|s| Sphere {
+                    center: s.center,
+                    radius: s.radius,
+                })
+                .collect(),
+            planes: manifest
+                .planes
+                .iter()
+                .map(|p| Plane {
+                    point: p.point,
+                    normal: p.normal,
+                })
+                .collect(),
+            ..SceneGeometry::default()
+        };
+        for (i, desc) in manifest.meshes.iter().enumerate() {
+            let key = format!("meshes[{i}].file");
+            let mesh = cache.load(&desc.file).map_err(|source| Error::Mesh {
+                key: key.clone(),
+                source,
+            })?;
+            geometry.warnings.extend(mesh.warnings.iter().cloned());
+            geometry
+                .add_mesh(&mesh, desc.transform, &desc.file)
+                .map_err(|source| Error::Mesh { key, source })?;
+        }
+        Ok(geometry)
+    }
+
+    /// Places every instance of `mesh` with `transform` applied after the file's own.
+    pub fn add_mesh(
+        &mut self,
+        mesh: &Arc<MeshFile>,
+        transform: DMat4,
+        file: &std::path::Path,
+    ) -> Result<(), MeshError> {
+        self.triangles.reserve(mesh.triangle_count());
+        for instance in &mesh.instances {
+            let geometry = &mesh.geometries[instance.geometry];
+            let m = transform * instance.transform;
+            let mut world = Vec::with_capacity(geometry.positions.len());
+            for p in &geometry.positions {
+                let q = m.transform_point3(DVec3::from_array(p.map(f64::from)));
+                if !(q.is_finite() && q.abs().max_element() <= MAX_MAGNITUDE) {
+                    return Err(MeshError::Range {
+                        path: file.to_path_buf(),
+                        message: format!(
+                            "vertex {p:?} lands at {q} after the transforms, out of range (magnitudes up to {MAX_MAGNITUDE:e})"
+                        ),
+                    });
+                }
+                world.push(q.as_vec3().to_array());
+            }
+            self.triangles.extend(
+                geometry
+                    .triangles
+                    .iter()
+                    .map(|t| t.map(|i| world[i as usize])),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Four triangles stored lane by lane (`v[vertex][axis][lane]`) so one ray meets all four
+/// at once. A leaf's last block repeats its last triangle in unused lanes.
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(16))]
+pub struct TriangleBlock {
+    pub v: [[[f32; BLOCK]; 3]; 3],
+    /// Each lane's index into the scene's triangle list (input order).
+    pub ids: [u32; BLOCK],
+}
+
+impl TriangleBlock {
+    /// Vertex `k` of lane `lane`.
+    pub fn vertex(&self, lane: usize, k: usize) -> [f32; 3] {
+        [self.v[k][0][lane], self.v[k][1][lane], self.v[k][2][lane]]
+    }
+
+    /// The nearest hit among the lanes with `tmin < t < tmax`.
+    #[inline(always)]
+    pub fn intersect(
+        &self,
+        ray: &ShearedRay,
+        tmin: f32,
+        tmax: f32,
+    ) -> Option<(usize, TriangleHit)> {
+        let mut best: Option<(usize, TriangleHit)> = None;
+        let mut tmax = tmax;
+        for lane in 0..BLOCK {
+            if let Some(hit) = triangle::intersect(
+                ray,
+                self.vertex(lane, 0),
+                self.vertex(lane, 1),
+                self.vertex(lane, 2),
+                tmin,
+                tmax,
+            ) {
+                tmax = hit.t;
+                best = Some((lane, hit));
+            }
+        }
+        best
+    }
+}
+
+/// What a ray hit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the ray's unit direction.
+    pub t: f64,
+    pub primitive: Primitive,
+}
+
+/// The primitive of a [`Hit`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Primitive {
+    /// Index into the manifest's `planes`.
+    Plane(u32),
+    /// Index into the manifest's `spheres`.
+    Sphere(u32),
+    /// A triangle: its block and lane in the tree's layout, and barycentrics.
+    Triangle {
+        block: u32,
+        lane: u8,
+        b1: f32,
+        b2: f32,
+    },
+}
+
+/// Sizes of what was built.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SceneCounts {
+    pub triangles: usize,
+    pub spheres: usize,
+    pub planes: usize,
+    /// Bytes of triangle blocks, sphere data and tree nodes.
+    pub accel_bytes: usize,
+}
+
+/// A scene ready for rays.
+#[derive(Debug)]
+pub struct Scene {
+    planes: Vec<Plane>,
+    /// Spheres in the tree's leaf order, with their manifest indices.
+    spheres: Vec<Sphere>,
+    sphere_ids: Vec<u32>,
+    /// Spheres in manifest order, for looking up a hit.
+    spheres_by_id: Vec<Sphere>,
+    sphere_bvh: Bvh<f64>,
+    blocks: Vec<TriangleBlock>,
+    triangle_bvh: Bvh<f32>,
+    counts: SceneCounts,
+}
+
+impl Scene {
+    /// Builds the trees with the default preset.
+    pub fn build(geometry: SceneGeometry) -> Scene {
+        Scene::build_with(geometry, BuildPreset::default())
+    }
+
+    pub fn build_with(geometry: SceneGeometry, preset: BuildPreset) -> Scene {
+        let SceneGeometry {
+            triangles,
+            spheres,
+            planes,
+            ..
+        } = geometry;
+
+        let (blocks, triangle_bvh) = build_triangles(&triangles, preset);
+        let (sphere_order, sphere_ids, sphere_bvh) = build_spheres(&spheres, preset);
+
+        let counts = SceneCounts {
+            triangles: triangles.len(),
+            spheres: spheres.len(),
+            planes: planes.len(),
+            accel_bytes: blocks.len() * std::mem::size_of::<TriangleBlock>()
+                + triangle_bvh.memory_bytes()
+                + sphere_order.len() * (std::mem::size_of::<Sphere>() + 4)
+                + sphere_bvh.memory_bytes(),
+        };
+        Scene {
+            planes,
+            spheres: sphere_order,
+            sphere_ids,
+            spheres_by_id: spheres,
+            sphere_bvh,
+            blocks,
+            triangle_bvh,
+            counts,
+        }
+    }
+
+    pub fn counts(&self) -> SceneCounts {
+        self.counts
+    }
+
+    /// The triangle tree (for inspection and tests).
+    pub fn triangle_bvh(&self) -> &Bvh<f32> {
+        &self.triangle_bvh
+    }
+
+    /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
+    #[inline]
+    pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        let mut tmax = ray.tmax;
+        for (i, plane) in self.planes.iter().enumerate() {
+            if let Some(t) = plane.intersect(ray, tmax) {
+                tmax = t;
+                best = Some(Hit {
+                    t,
+                    primitive: Primitive::Plane(i as u32),
+                });
+            }
+        }
+        if !self.sphere_bvh.is_empty() {
+            let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+            self.sphere_bvh
+                .closest(&box_ray, &mut tmax, |first, count, tmax| {
+                    for i in first..first + count {
+                        if let Some(t) = self.spheres[i as usize].intersect(ray, *tmax) {
+                            *tmax = t;
+                            best = Some(Hit {
+                                t,
+                                primitive: Primitive::Sphere(self.sphere_ids[i as usize]),
+                            });
+                        }
+                    }
+                });
+        }
+        if !self.triangle_bvh.is_empty() {
+            let r = TriangleRay::new(ray, tmax);
+            let mut tmax32 = r.tmax;
+            let mut found = None;
+            self.triangle_bvh
+                .closest(&r.boxes, &mut tmax32, |first, count, tmax| {
+                    for b in first..first + count {
+                        if let Some((lane, hit)) =
+                            self.blocks[b as usize].intersect(&r.sheared, r.tmin, *tmax)
+                        {
+                            *tmax = hit.t;
+                            found = Some((b, lane, hit));
+                        }
+                    }
+                });
+            if let Some((block, lane, hit)) = found {
+                best = Some(Hit {
+                    t: f64::from(hit.t),
+                    primitive: Primitive::Triangle {
+                        block,
+                        lane: lane as u8,
+                        b1: hit.b1,
+                        b2: hit.b2,
+                    },
+                });
+            }
+        }
+        best
+    }
+
+    /// Whether anything is hit with `ray.tmin < t < ray.tmax`; stops at the first hit found.
+    #[inline]
+    pub fn any_hit(&self, ray: &Ray) -> bool {
+        if self
+            .planes
+            .iter()
+            .any(|p| p.intersect(ray, ray.tmax).is_some())
+        {
+            return true;
+        }
+        if !self.sphere_bvh.is_empty() {
+            let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+            let hit = self.sphere_bvh.any(&box_ray, ray.tmax, |first, count| {
+                (first..first + count)
+                    .any(|i| self.spheres[i as usize].intersect(ray, ray.tmax).is_some())
+            });
+            if hit {
+                return true;
+            }
+        }
+        if !self.triangle_bvh.is_empty() {
+            let r = TriangleRay::new(ray, ray.tmax);
+            return self.triangle_bvh.any(&r.boxes, r.tmax, |first, count| {
+                (first..first + count).any(|b| {
+                    self.blocks[b as usize]
+                        .intersect(&r.sheared, r.tmin, r.tmax)
+                        .is_some()
+                })
+            });
+        }
+        false
+    }
+
+    /// The unit geometric normal at a hit, not flipped toward the ray: a sphere's
+    /// `(p − c)/r`, a plane's normal, a triangle's `normalize(cross(v1 − v0, v2 − v0))`.
+    pub fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
+        match hit.primitive {
+            Primitive::Plane(i) => self.planes[i as usize].normal,
+            Primitive::Sphere(id) => self.spheres_by_id[id as usize].normal(ray.at(hit.t)),
+            Primitive::Triangle { block, lane, .. } => {
+                let b = &self.blocks[block as usize];
+                let lane = lane as usize;
+                triangle::geometric_normal(b.vertex(lane, 0), b.vertex(lane, 1), b.vertex(lane, 2))
+            }
+        }
+    }
+
+    /// The input index (into [`SceneGeometry::triangles`]) of a hit triangle.
+    pub fn triangle_id(&self, block: u32, lane: u8) -> u32 {
+        self.blocks[block as usize].ids[lane as usize]
+    }
+}
+
+/// A float64 ray rounded for the float32 triangle path.
+struct TriangleRay {
+    sheared: ShearedRay,
+    boxes: BoxRay<f32>,
+    tmin: f32,
+    tmax: f32,
+}
+
+impl TriangleRay {
+    #[inline(always)]
+    fn new(ray: &Ray, tmax: f64) -> TriangleRay {
+        let origin = ray.origin.as_vec3();
+        let direction = ray.direction.as_vec3();
+        let tmin = bvh::f32_at_most(ray.tmin);
+        TriangleRay {
+            sheared: ShearedRay::new(origin, direction),
+            boxes: BoxRay::new(origin.to_array(), direction.to_array(), tmin),
+            tmin,
+            tmax: bvh::f32_at_least(tmax),
+        }
+    }
+}
+
+fn build_triangles(
+    triangles: &[[[f32; 3]; 3]],
+    preset: BuildPreset,
+) -> (Vec<TriangleBlock>, Bvh<f32>) {
+    let bounds: Vec<Bounds<f32>> = triangles
+        .iter()
+        .map(|t| {
+            let lo = Vec3::from(t[0]).min(Vec3::from(t[1])).min(Vec3::from(t[2]));
+            let hi = Vec3::from(t[0]).max(Vec3::from(t[1])).max(Vec3::from(t[2]));
+            Bounds {
+                min: lo.to_array(),
+                max: hi.to_array(),
+            }
+        })
+        .collect();
+    let boxes: Vec<Aabb> = bounds
+        .iter()
+        .map(|b| Aabb::new(b.min.into(), b.max.into()))
+        .collect();
+    let mut blocks: Vec<TriangleBlock> = Vec::with_capacity(triangles.len().div_ceil(BLOCK) + 1);
+    let bvh = Bvh::build(
+        &bounds,
+        &boxes,
+        preset.params(TRIANGLES_PER_LEAF),
+        |prims| {
+            let first = blocks.len() as u32;
+            for chunk in prims.chunks(BLOCK) {
+                let mut block = TriangleBlock {
+                    v: [[[0.0; BLOCK]; 3]; 3],
+                    ids: [0; BLOCK],
+                };
+                for lane in 0..BLOCK {
+                    let id = chunk[lane.min(chunk.len() - 1)];
+                    let t = &triangles[id as usize];
+                    for (k, vertex) in t.iter().enumerate() {
+                        for (axis, &coordinate) in vertex.iter().enumerate() {
+                            block.v[k][axis][lane] = coordinate;
+                        }
+                    }
+                    block.ids[lane] = id;
+                }
+                blocks.push(block);
+            }
+            (first, blocks.len() as u32 - first)
+        },
+    );
+    (blocks, bvh)
+}
+
+fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u32>, Bvh<f64>) {
+    let bounds: Vec<Bounds<f64>> = spheres
+        .iter()
+        .map(|s| {
+            // Rounded outward: the true surface reaches exactly c ± r.
+            let c = s.center.to_array();
+            Bounds {
+                min: c.map(|x| (x - s.radius).next_down()),
+                max: c.map(|x| (x + s.radius).next_up()),
+            }
+        })
+        .collect();
+    let boxes: Vec<Aabb> = bounds
+        .iter()
+        .map(|b| bvh::outward_f32(b.min, b.max))
+        .collect();
+    let mut order = Vec::with_capacity(spheres.len());
+    let mut ids = Vec::with_capacity(spheres.len());
+    let tree = Bvh::build(&bounds, &boxes, preset.params(SPHERES_PER_LEAF), |prims| {
+        let first = order.len() as u32;
+        for &p in prims {
+            order.push(spheres[p as usize]);
+            ids.push(p);
+        }
+        (first, prims.len() as u32)
+    });
+    (order, ids, tree)
+}
