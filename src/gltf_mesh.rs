@@ -23,7 +23,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         place: Place(place),
         message,
     };
-    let gltf = gltf::Gltf::from_slice(bytes).map_err(|e| fail(None, e.to_string()))?;
+    let gltf = gltf::Gltf::from_slice(bytes).map_err(|e| fail(None, shorten(&e.to_string())))?;
     let buffers =
         load_buffers(&gltf, path).map_err(|(place, message)| fail(Some(place), message))?;
     let document = &gltf.document;
@@ -111,6 +111,21 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         ));
     }
     Ok(mesh)
+}
+
+/// The gltf crate lists every validation failure; a file missing one field per accessor
+/// would print hundreds. Keep the first few.
+fn shorten(message: &str) -> String {
+    const KEEP: usize = 3;
+    let parts: Vec<&str> = message.trim_end_matches(';').split("; ").collect();
+    if parts.len() <= KEEP {
+        return message.trim_end_matches(';').to_string();
+    }
+    format!(
+        "{}; and {} more",
+        parts[..KEEP].join("; "),
+        parts.len() - KEEP
+    )
 }
 
 /// The node's local transform in float64 (column-major matrix, or T·R·S).

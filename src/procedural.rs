@@ -127,6 +127,238 @@ pub fn to_obj(geometry: &Geometry, comment: &str) -> String {
     out
 }
 
+/// A glTF node for [`to_gltf`]: an optional mesh, a local T·R·S transform, children.
+#[derive(Debug, Clone)]
+pub struct GltfNode {
+    pub mesh: Option<usize>,
+    pub translation: [f32; 3],
+    /// Unit quaternion `[x, y, z, w]`.
+    pub rotation: [f32; 4],
+    pub scale: [f32; 3],
+    pub children: Vec<usize>,
+}
+
+impl GltfNode {
+    pub fn new(mesh: Option<usize>) -> GltfNode {
+        GltfNode {
+            mesh,
+            translation: [0.0; 3],
+            rotation: [0.0, 0.0, 0.0, 1.0],
+            scale: [1.0; 3],
+            children: Vec::new(),
+        }
+    }
+}
+
+/// One primitive of a glTF mesh: positions, optional `u16` indices, and the glTF mode
+/// (4 triangles, 5 strip, 6 fan, 0 points, 1 lines).
+#[derive(Debug, Clone)]
+pub struct GltfPrimitive {
+    pub positions: Vec<[f32; 3]>,
+    pub indices: Option<Vec<u16>>,
+    pub mode: u32,
+}
+
+/// A self-contained glTF 2.0 document (buffer embedded as a base64 data URI) with
+/// `meshes` (lists of primitives), `nodes`, and one scene of the nodes `roots`.
+pub fn to_gltf(meshes: &[Vec<GltfPrimitive>], nodes: &[GltfNode], roots: &[usize]) -> String {
+    use base64::Engine;
+    use serde_json::json;
+    let mut buffer: Vec<u8> = Vec::new();
+    let (mut views, mut accessors, mut json_meshes) = (Vec::new(), Vec::new(), Vec::new());
+    for mesh in meshes {
+        let mut primitives = Vec::new();
+        for primitive in mesh {
+            let offset = buffer.len();
+            for p in &primitive.positions {
+                for c in p {
+                    buffer.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+            let (lo, hi) = primitive.positions.iter().fold(
+                ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+                |(lo, hi), p| {
+                    (
+                        [0, 1, 2].map(|k| lo[k].min(p[k])),
+                        [0, 1, 2].map(|k| hi[k].max(p[k])),
+                    )
+                },
+            );
+            views.push(
+                json!({"buffer": 0, "byteOffset": offset, "byteLength": buffer.len() - offset}),
+            );
+            accessors.push(json!({
+                "bufferView": views.len() - 1, "componentType": 5126,
+                "count": primitive.positions.len(), "type": "VEC3", "min": lo, "max": hi
+            }));
+            let mut json_primitive =
+                json!({"attributes": {"POSITION": accessors.len() - 1}, "mode": primitive.mode});
+            if let Some(indices) = &primitive.indices {
+                let offset = buffer.len();
+                for i in indices {
+                    buffer.extend_from_slice(&i.to_le_bytes());
+                }
+                views.push(
+                    json!({"buffer": 0, "byteOffset": offset, "byteLength": buffer.len() - offset}),
+                );
+                accessors.push(json!({
+                    "bufferView": views.len() - 1, "componentType": 5123,
+                    "count": indices.len(), "type": "SCALAR"
+                }));
+                json_primitive["indices"] = json!(accessors.len() - 1);
+            }
+            while buffer.len() % 4 != 0 {
+                buffer.push(0);
+            }
+            primitives.push(json_primitive);
+        }
+        json_meshes.push(json!({"primitives": primitives}));
+    }
+    let json_nodes: Vec<_> = nodes
+        .iter()
+        .map(|n| {
+            let mut node =
+                json!({"translation": n.translation, "rotation": n.rotation, "scale": n.scale});
+            if let Some(mesh) = n.mesh {
+                node["mesh"] = json!(mesh);
+            }
+            if !n.children.is_empty() {
+                node["children"] = json!(n.children);
+            }
+            node
+        })
+        .collect();
+    let uri = format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(&buffer)
+    );
+    let document = json!({
+        "asset": {"version": "2.0", "generator": "raybatch procedural::to_gltf"},
+        "scene": 0,
+        "scenes": [{"nodes": roots}],
+        "nodes": json_nodes,
+        "meshes": json_meshes,
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": buffer.len(), "uri": uri}],
+    });
+    let mut text = serde_json::to_string_pretty(&document).unwrap_or_default();
+    text.push('\n');
+    text
+}
+
+/// The unit cube `[-0.5, 0.5]³` as 8 vertices and 12 outward-wound triangles.
+pub fn cube() -> Geometry {
+    let positions = (0..8)
+        .map(|i| [i & 1, (i >> 1) & 1, (i >> 2) & 1].map(|b| b as f32 - 0.5))
+        .collect();
+    let triangles = vec![
+        [0, 2, 3],
+        [0, 3, 1], // z = -0.5
+        [4, 5, 7],
+        [4, 7, 6], // z = +0.5
+        [0, 1, 5],
+        [0, 5, 4], // y = -0.5
+        [2, 6, 7],
+        [2, 7, 3], // y = +0.5
+        [0, 4, 6],
+        [0, 6, 2], // x = -0.5
+        [1, 3, 7],
+        [1, 7, 5], // x = +0.5
+    ];
+    Geometry {
+        positions,
+        triangles,
+    }
+}
+
+/// The files of `models/`, by name: what `cargo run --example make_models` writes.
+pub fn model_files() -> Vec<(&'static str, Vec<u8>)> {
+    let icosphere = to_obj(
+        &icosphere(2),
+        "Unit icosphere, 2 subdivisions (320 triangles).\nMade by raybatch::procedural; regenerate with `cargo run --example make_models`.",
+    );
+    let torus = to_obj(
+        &torus(1.0, 0.35, 48, 24),
+        "Torus around y: major radius 1, tube radius 0.35, 48 x 24 quads.\nMade by raybatch::procedural; regenerate with `cargo run --example make_models`.",
+    );
+    (["icosphere.obj", "torus.obj"].into_iter())
+        .zip([icosphere, torus])
+        .map(|(name, text)| (name, text.into_bytes()))
+        .chain([("stack.gltf", stack_gltf().into_bytes())])
+        .collect()
+}
+
+/// A glTF scene with a node hierarchy: a base cube carrying a rotated, scaled cube on top
+/// (whose transform composes with its parent's), a hexagon as a triangle fan, a ribbon as
+/// a triangle strip, and a line primitive that renderers skip.
+fn stack_gltf() -> String {
+    let c = cube();
+    let cube_primitive = GltfPrimitive {
+        positions: c.positions,
+        indices: Some(c.triangles.iter().flatten().map(|&i| i as u16).collect()),
+        mode: 4,
+    };
+    let hexagon = GltfPrimitive {
+        positions: std::iter::once([0.0, 0.0, 0.0])
+            .chain((0..=6).map(|i| {
+                let a = i as f32 * std::f32::consts::TAU / 6.0;
+                [0.5 * a.cos(), 0.5 * a.sin(), 0.0]
+            }))
+            .collect(),
+        indices: None,
+        mode: 6,
+    };
+    let ribbon = GltfPrimitive {
+        positions: (0..10)
+            .map(|i| {
+                [
+                    (i / 2) as f32 * 0.25,
+                    (i % 2) as f32 * 0.3,
+                    0.1 * ((i / 2) as f32).sin(),
+                ]
+            })
+            .collect(),
+        indices: None,
+        mode: 5,
+    };
+    let line = GltfPrimitive {
+        positions: vec![[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+        indices: None,
+        mode: 1,
+    };
+    let quarter_turn_y = [
+        0.0,
+        std::f32::consts::FRAC_1_SQRT_2,
+        0.0,
+        std::f32::consts::FRAC_1_SQRT_2,
+    ];
+    let mut base = GltfNode::new(Some(0));
+    base.scale = [1.0, 0.5, 1.0];
+    base.children = vec![1];
+    let mut top = GltfNode::new(Some(0));
+    // Local to the base: up one unit (half a unit once the base's y scale applies).
+    top.translation = [0.0, 1.0, 0.0];
+    top.rotation = [0.0, 0.38268343, 0.0, 0.9238795]; // 45 degrees about y
+    top.scale = [0.6, 1.0, 0.6];
+    let mut fan = GltfNode::new(Some(1));
+    fan.translation = [-1.4, 0.0, 0.0];
+    fan.rotation = quarter_turn_y;
+    let mut strip = GltfNode::new(Some(2));
+    strip.translation = [0.9, -0.25, 0.0];
+    let wire = GltfNode::new(Some(3));
+    to_gltf(
+        &[
+            vec![cube_primitive],
+            vec![hexagon],
+            vec![ribbon],
+            vec![line],
+        ],
+        &[base, top, fan, strip, wire],
+        &[0, 2, 3, 4],
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -153,6 +385,11 @@ mod tests {
             assert_eq!(g.positions.len(), 10 * 4usize.pow(n) + 2);
             assert_closed(&g);
         }
+    }
+
+    #[test]
+    fn the_cube_is_closed() {
+        assert_closed(&cube());
     }
 
     #[test]
