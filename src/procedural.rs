@@ -207,7 +207,7 @@ pub fn to_gltf(meshes: &[Vec<GltfPrimitive>], nodes: &[GltfNode], roots: &[usize
                 }));
                 json_primitive["indices"] = json!(accessors.len() - 1);
             }
-            while buffer.len() % 4 != 0 {
+            while !buffer.len().is_multiple_of(4) {
                 buffer.push(0);
             }
             primitives.push(json_primitive);
