@@ -209,6 +209,23 @@ mod tests {
     }
 
     #[test]
+    fn an_edge_function_that_rounds_to_zero_gets_its_exact_sign() {
+        // cx·by = (1 + 2⁻²³)² = 1 + 2⁻²² + 2⁻⁴⁶ rounds to 1 + 2⁻²² = cy·bx in float32, so U
+        // is 0 there; in float64 it is 2⁻⁴⁶ > 0, and the ray is not on that edge.
+        let e = f32::EPSILON;
+        let (bx, by) = (1.0, 1.0 + e);
+        let (cx, cy) = (1.0 + e, 1.0 + 2.0 * e);
+        assert_eq!(cx * by - cy * bx, 0.0);
+        let (u, v, w) = edge_functions(-1.0, 0.5, bx, by, cx, cy);
+        assert!(u > 0.0, "{u}");
+        let exact = |p: f32, q: f32, r: f32, s: f32| {
+            f64::from(p) * f64::from(q) - f64::from(r) * f64::from(s)
+        };
+        assert_eq!(f64::from(v).signum(), exact(-1.0, cy, 0.5, cx).signum());
+        assert_eq!(f64::from(w).signum(), exact(bx, 0.5, by, -1.0).signum());
+    }
+
+    #[test]
     fn the_interval_is_strict() {
         let ray = ShearedRay::new(Vec3::new(0.2, 0.2, 0.0), Vec3::Z);
         let [a, b, c] = TRI;

@@ -1,0 +1,109 @@
+//! The seed's scene, pixel for pixel, and the properties every image must have.
+
+use crate::util::{Dir, ppm, repo};
+
+const CANONICAL: &str =
+    r#"{"image": {"width": 640, "height": 480}, "spheres": [{"center": [0, 0, 3], "radius": 1}]}"#;
+
+/// The canonical mask in integers. The default camera's pixel-centre ray has direction
+/// `(u, v, 1)` with `u = (2x + 1 − 640) / 480` and `v = (479 − 2y) / 480`; it passes within
+/// distance 1 of `(0, 0, 3)` when `|c × d|² < |d|²`, i.e. `8(a² + b²) < 480²` with
+/// `a = 2x − 639`, `b = 479 − 2y`.
+fn canonical_mask(x: i64, y: i64) -> bool {
+    let (a, b) = (2 * x - 639, 479 - 2 * y);
+    8 * (a * a + b * b) < 480 * 480
+}
+
+#[test]
+fn the_canonical_scene_is_exact_pixel_for_pixel() {
+    let dir = Dir::new();
+    let image = dir.ppm_of("canonical.json", CANONICAL, "canonical.ppm");
+    assert_eq!(image.magic, "P3");
+    assert_eq!((image.width, image.height), (640, 480));
+    let mut white = 0;
+    for y in 0..480 {
+        for x in 0..640 {
+            let expected = if canonical_mask(x as i64, y as i64) {
+                white += 1;
+                [255, 255, 255]
+            } else {
+                [0, 0, 0]
+            };
+            assert_eq!(image.at(x, y), expected, "pixel ({x}, {y})");
+        }
+    }
+    assert_eq!(white, 22_632);
+}
+
+#[test]
+fn the_shipped_canonical_manifest_is_the_seed_scene() {
+    let dir = Dir::new();
+    let manifest = repo("scenes/canonical.json");
+    let run = dir.raybatch(&["render", manifest.to_str().unwrap(), "--out", "out"]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let image = ppm(&dir.read("out/canonical.ppm"));
+    assert_eq!(image.count([255, 255, 255]), 22_632);
+    assert_eq!(image.count([0, 0, 0]), 640 * 480 - 22_632);
+}
+
+#[test]
+fn binary_ppm_holds_the_same_pixels() {
+    let dir = Dir::new();
+    let plain = dir.ppm_of("plain.json", CANONICAL, "plain.ppm");
+    let binary_json = CANONICAL.replacen('{', r#"{"ppm": "binary", "#, 1);
+    let binary = dir.ppm_of("binary.json", &binary_json, "binary.ppm");
+    assert_eq!(binary.magic, "P6");
+    assert_eq!(binary.pixels, plain.pixels);
+    assert!(dir.read("binary.ppm").starts_with(b"P6\n640 480\n255\n"));
+}
+
+#[test]
+fn the_bytes_do_not_depend_on_the_thread_count() {
+    let dir = Dir::new();
+    dir.write(
+        "models/ico.obj",
+        raybatch::procedural::to_obj(&raybatch::procedural::icosphere(3), ""),
+    );
+    dir.write(
+        "scene.json",
+        r#"{
+          "image": {"width": 97, "height": 61},
+          "output": "scene.pfm",
+          "camera": {"look_from": [1, 2, 4], "look_at": [0, 0, 0], "vfov": 50},
+          "integrator": {"type": "normal"},
+          "sampler": {"type": "independent", "spp": 5, "seed": 11},
+          "spheres": [{"center": [1, 0, 0], "radius": 0.6}, {"center": [-1, 0.2, -0.5], "radius": 0.4}],
+          "planes": [{"point": [0, -0.7, 0], "normal": [0, 1, 0.1]}],
+          "meshes": [{"file": "models/ico.obj", "transform": {"scale": 0.8}}]
+        }"#,
+    );
+    let mut outputs = Vec::new();
+    for threads in ["1", "2", "3", "8"] {
+        let out = format!("out{threads}");
+        let run = dir.raybatch(&["render", "scene.json", "--threads", threads, "--out", &out]);
+        assert_eq!(run.status, 0, "{}", run.stderr);
+        outputs.push(dir.read(&format!("{out}/scene.pfm")));
+    }
+    for other in &outputs[1..] {
+        assert!(other == &outputs[0], "thread count changed the bytes");
+    }
+}
+
+#[test]
+fn every_shipped_scene_renders() {
+    let dir = Dir::new();
+    let scenes = repo("scenes");
+    let run = dir.raybatch(&["render", scenes.to_str().unwrap(), "--out", "out"]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let manifests = std::fs::read_dir(&scenes)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "json")
+        })
+        .count();
+    assert_eq!(dir.files().len(), manifests, "{:?}", dir.files());
+}

@@ -1,0 +1,410 @@
+//! Refusals: every bad manifest or mesh is reported on one line naming the manifest, the
+//! place and the cause; nothing partial is written; the rest of the batch renders; exit
+//! statuses are 0, 1 and 2.
+
+use crate::util::Dir;
+
+const IMAGE: &str = r#""image": {"width": 4, "height": 3}"#;
+
+/// (manifest file name, contents, fragments its error line must contain).
+fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
+    let m = |body: &str| format!("{{{IMAGE}, {body}}}");
+    vec![
+        (
+            "syntax.json",
+            format!("{{{IMAGE},}}"),
+            vec!["line 1, column", "trailing comma"],
+        ),
+        ("empty.json", String::new(), vec!["line 1, column 0", "EOF"]),
+        (
+            "array.json",
+            "[1, 2]".to_string(),
+            vec!["line 1", "expected struct"],
+        ),
+        (
+            "unknown-key.json",
+            m(r#""sphere": []"#),
+            vec!["unknown field `sphere`", "line 1"],
+        ),
+        (
+            "nested-key.json",
+            m(r#""spheres": [{"center": [0, 0, 3], "radus": 1}]"#),
+            vec!["spheres[0]", "unknown field `radus`"],
+        ),
+        (
+            "negative-radius.json",
+            m(
+                r#""spheres": [{"center": [0, 0, 3], "radius": 1}, {"center": [0, 0, 3], "radius": -2}]"#,
+            ),
+            vec!["spheres[1].radius", "greater than 0", "-2"],
+        ),
+        (
+            "wrong-type.json",
+            m(r#""spheres": [{"center": [0, 0, 3], "radius": "1"}]"#),
+            vec!["spheres[0].radius", "invalid type"],
+        ),
+        (
+            "short-vector.json",
+            m(r#""spheres": [{"center": [0, 3], "radius": 1}]"#),
+            vec!["spheres[0].center", "invalid length 2"],
+        ),
+        (
+            "huge-number.json",
+            m(r#""spheres": [{"center": [0, 0, 1e999], "radius": 1}]"#),
+            vec!["number out of range", "line 1"],
+        ),
+        (
+            "out-of-range.json",
+            m(r#""spheres": [{"center": [0, 0, 1e300], "radius": 1}]"#),
+            vec!["spheres[0].center[2]", "out of range"],
+        ),
+        (
+            "zero-width.json",
+            r#"{"image": {"width": 0, "height": 3}}"#.to_string(),
+            vec!["image.width", "between 1 and"],
+        ),
+        (
+            "no-image.json",
+            "{}".to_string(),
+            vec!["missing field `image`"],
+        ),
+        (
+            "duplicate.json",
+            format!("{{{IMAGE}, {IMAGE}}}"),
+            vec!["duplicate field `image`"],
+        ),
+        (
+            "version.json",
+            m(r#""version": 2"#),
+            vec!["version", "unsupported version 2"],
+        ),
+        ("tmin.json", m(r#""tmin": -1"#), vec!["tmin", "at least 0"]),
+        (
+            "tmax.json",
+            m(r#""tmin": 5, "tmax": 2"#),
+            vec!["tmax", "greater than tmin"],
+        ),
+        (
+            "background.json",
+            m(r#""background": [0, -1, 0]"#),
+            vec!["background[1]", "negative"],
+        ),
+        (
+            "output-ext.json",
+            m(r#""output": "image.png""#),
+            vec!["output", ".ppm or .pfm"],
+        ),
+        (
+            "ppm-style.json",
+            m(r#""ppm": "ascii""#),
+            vec!["ppm", "unknown variant `ascii`"],
+        ),
+        (
+            "integrator.json",
+            m(r#""integrator": {"type": "toon"}"#),
+            vec!["integrator", "unknown variant `toon`"],
+        ),
+        (
+            "integrator-key.json",
+            m(r#""integrator": {"type": "depth", "scael": 2}"#),
+            vec!["integrator", "unknown field `scael`"],
+        ),
+        (
+            "depth-scale.json",
+            m(r#""integrator": {"type": "depth", "scale": 0}"#),
+            vec!["integrator.scale"],
+        ),
+        (
+            "center-spp.json",
+            m(r#""sampler": {"type": "center", "spp": 4}"#),
+            vec!["sampler.spp", "exactly 1"],
+        ),
+        (
+            "spp-zero.json",
+            m(r#""sampler": {"type": "independent", "spp": 0}"#),
+            vec!["sampler.spp"],
+        ),
+        (
+            "camera-mixed.json",
+            m(r#""camera": {"look_from": [0, 0, 5], "look_at": [0, 0, 0], "origin": [1, 0, 0]}"#),
+            vec!["camera.origin", "look_from/look_at"],
+        ),
+        (
+            "camera-half.json",
+            m(r#""camera": {"look_from": [0, 0, 5]}"#),
+            vec!["camera.look_at", "required"],
+        ),
+        (
+            "camera-vfov.json",
+            m(r#""camera": {"look_from": [0, 0, 5], "look_at": [0, 0, 0], "vfov": 180}"#),
+            vec!["camera.vfov", "between 0 and 180"],
+        ),
+        (
+            "camera-up.json",
+            m(r#""camera": {"look_from": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 0, 2]}"#),
+            vec!["camera.up", "parallel"],
+        ),
+        (
+            "camera-basis.json",
+            m(r#""camera": {"right": [1, 0, 0], "up": [2, 0, 0]}"#),
+            vec!["camera", "linearly independent"],
+        ),
+        (
+            "camera-lens.json",
+            m(r#""camera": {"aperture": 0.1}"#),
+            vec!["camera.focus_distance", "required"],
+        ),
+        (
+            "material-name.json",
+            m(
+                r#""materials": {"red": {"type": "diffuse", "albedo": [1, 0, 0]}},
+                 "spheres": [{"center": [0, 0, 3], "radius": 1, "material": "gold"}]"#,
+            ),
+            vec!["spheres[0].material", "unknown material `gold`", "red"],
+        ),
+        (
+            "albedo.json",
+            m(r#""materials": {"red": {"type": "diffuse", "albedo": [1.5, 0, 0]}}"#),
+            vec!["materials.red.albedo[0]", "[0, 1]"],
+        ),
+        (
+            "material-type.json",
+            m(r#""materials": {"x": {"type": "metal", "albedo": [1, 0, 0]}}"#),
+            vec!["materials", "unknown variant `metal`"],
+        ),
+        (
+            "plane-normal.json",
+            m(r#""planes": [{"point": [0, 0, 0], "normal": [0, 0, 0]}]"#),
+            vec!["planes[0].normal", "zero"],
+        ),
+        (
+            "light.json",
+            m(r#""lights": [{"type": "point", "position": [0, 0, 0], "intensity": [1, -1, 1]}]"#),
+            vec!["lights[0].intensity[1]", "negative"],
+        ),
+        (
+            "mesh-ext.json",
+            m(r#""meshes": [{"file": "bunny.stl"}]"#),
+            vec!["meshes[0].file", "unsupported mesh format"],
+        ),
+        (
+            "matrix-row.json",
+            m(
+                r#""meshes": [{"file": "t.obj", "transform": {"matrix": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,1,1]}}]"#,
+            ),
+            vec!["meshes[0].transform.matrix", "bottom row"],
+        ),
+        (
+            "matrix-and-scale.json",
+            m(
+                r#""meshes": [{"file": "t.obj", "transform": {"matrix": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1], "scale": 2}}]"#,
+            ),
+            vec!["meshes[0].transform", "not both"],
+        ),
+        (
+            "rotate-axis.json",
+            m(
+                r#""meshes": [{"file": "t.obj", "transform": {"rotate": {"axis": [0, 0, 0], "degrees": 10}}}]"#,
+            ),
+            vec!["meshes[0].transform.rotate.axis", "zero"],
+        ),
+        (
+            "scale-shape.json",
+            m(r#""meshes": [{"file": "t.obj", "transform": {"scale": [1, 2]}}]"#),
+            vec!["meshes[0].transform.scale", "three numbers"],
+        ),
+        (
+            "not-yet.json",
+            m(r#""integrator": {"type": "path"}"#),
+            vec!["integrator.type", "`path`", "not implemented"],
+        ),
+    ]
+}
+
+#[test]
+fn every_bad_manifest_is_refused_on_one_line_with_its_place_and_cause() {
+    let dir = Dir::new();
+    dir.write("jobs/t.obj", "v 0 0 3\nv 1 0 3\nv 0 1 3\nf 1 2 3\n");
+    dir.write("jobs/good.json", format!("{{{IMAGE}}}"));
+    let cases = bad_manifests();
+    for (name, text, _) in &cases {
+        dir.write(&format!("jobs/{name}"), text);
+    }
+    let run = dir.raybatch(&["render", "jobs"]);
+    assert_eq!(run.status, 1);
+    let lines = run.error_lines();
+    assert_eq!(
+        lines.len(),
+        cases.len(),
+        "one line per failed job:\n{}",
+        run.stderr
+    );
+    for (name, _, fragments) in &cases {
+        let line = lines
+            .iter()
+            .find(|l| l.contains(&format!("jobs/{name}:")))
+            .unwrap_or_else(|| panic!("no error line for {name}:\n{}", run.stderr));
+        for fragment in fragments {
+            assert!(
+                line.contains(fragment),
+                "{name}: `{fragment}` not in: {line}"
+            );
+        }
+    }
+    // The good job rendered; no failed job left any file.
+    let mut expected: Vec<String> = cases.iter().map(|(n, _, _)| format!("jobs/{n}")).collect();
+    expected.extend(["jobs/good.json", "jobs/good.ppm", "jobs/t.obj"].map(String::from));
+    expected.sort();
+    assert_eq!(dir.files(), expected);
+}
+
+#[test]
+fn bad_mesh_files_are_refused_with_the_file_and_place() {
+    let dir = Dir::new();
+    let cases: Vec<(&str, &[u8], Vec<&str>)> = vec![
+        ("vertex.obj", b"v 0 0 0\nv 1 oops 0\nv 0 1 0\nf 1 2 3\n", vec!["vertex.obj: line 2", "three numbers"]),
+        ("face.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", vec!["face.obj: line 4", "does not exist"]),
+        ("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", vec!["zero.obj: line 4"]),
+        ("nan.obj", b"v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", vec!["nan.obj", "vertex 2 is not finite"]),
+        ("binary.obj", b"v 0 0 0\n\xff\xfe\n", vec!["binary.obj: line 2", "UTF-8"]),
+        ("text.gltf", b"this is not json", vec!["text.gltf"]),
+        ("truncated.glb", b"glTF\x02\x00\x00\x00", vec!["truncated.glb"]),
+        (
+            "index.gltf",
+            br#"{"asset": {"version": "2.0"},
+                "buffers": [{"byteLength": 8, "uri": "data:application/octet-stream;base64,AAAAAAAAAAA="}],
+                "bufferViews": [{"buffer": 0, "byteLength": 8}],
+                "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [0,0,0], "max": [0,0,0]}],
+                "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+                "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}]}"#,
+            vec!["index.gltf", "accessors[0]", "reach past"],
+        ),
+        (
+            "missing-bin.gltf",
+            br#"{"asset": {"version": "2.0"}, "buffers": [{"byteLength": 36, "uri": "nowhere.bin"}]}"#,
+            vec!["missing-bin.gltf", "buffers[0]", "nowhere.bin"],
+        ),
+        (
+            "cycle.gltf",
+            br#"{"asset": {"version": "2.0"}, "nodes": [{"children": [1]}, {"children": [0]}],
+                "scenes": [{"nodes": [0]}]}"#,
+            vec!["cycle.gltf", "cycle"],
+        ),
+    ];
+    for (file, bytes, _) in &cases {
+        dir.write(file, bytes);
+        let stem = file.replace('.', "-");
+        dir.write(
+            &format!("{stem}.json"),
+            format!(r#"{{{IMAGE}, "meshes": [{{"file": "{file}"}}]}}"#),
+        );
+    }
+    dir.write(
+        "missing.json",
+        format!(r#"{{{IMAGE}, "meshes": [{{"file": "absent.obj"}}]}}"#),
+    );
+    dir.write(
+        "far.json",
+        format!(r#"{{{IMAGE}, "meshes": [{{"file": "ok.obj", "transform": {{"scale": 1e15}}}}]}}"#),
+    );
+    dir.write("ok.obj", "v 0 0 3\nv 1 0 3\nv 0 1 3\nf 1 2 3\n");
+    let run = dir.raybatch(&["render", "."]);
+    assert_eq!(run.status, 1);
+    let lines = run.error_lines();
+    assert_eq!(lines.len(), cases.len() + 2, "{}", run.stderr);
+    for (file, _, fragments) in &cases {
+        let stem = file.replace('.', "-");
+        let line = lines
+            .iter()
+            .find(|l| l.contains(&format!("{stem}.json:")))
+            .unwrap_or_else(|| panic!("no line for {file}:\n{}", run.stderr));
+        assert!(line.contains("meshes[0].file"), "{line}");
+        for fragment in fragments {
+            assert!(
+                line.contains(fragment),
+                "{file}: `{fragment}` not in: {line}"
+            );
+        }
+    }
+    let missing = lines.iter().find(|l| l.contains("missing.json")).unwrap();
+    assert!(
+        missing.contains("meshes[0].file") && missing.contains("absent.obj"),
+        "{missing}"
+    );
+    let far = lines.iter().find(|l| l.contains("far.json")).unwrap();
+    assert!(far.contains("out of range"), "{far}");
+    assert!(
+        dir.files().iter().all(|f| !f.ends_with(".ppm")),
+        "{:?}",
+        dir.files()
+    );
+}
+
+#[test]
+fn a_failed_write_leaves_no_partial_or_temporary_file() {
+    let dir = Dir::new();
+    std::fs::create_dir_all(dir.join("taken.ppm")).unwrap();
+    dir.write("taken.json", format!("{{{IMAGE}}}"));
+    let run = dir.raybatch(&["render", "taken.json"]);
+    assert_eq!(run.status, 1);
+    assert!(
+        run.stderr.contains("taken.json") && run.stderr.contains("cannot write"),
+        "{}",
+        run.stderr
+    );
+    assert_eq!(dir.files(), ["taken.json"], "no temporary file left");
+}
+
+#[test]
+fn two_jobs_never_write_the_same_file() {
+    let dir = Dir::new();
+    dir.write("a/scene.json", format!("{{{IMAGE}}}"));
+    dir.write(
+        "b/scene.json",
+        format!(r#"{{{IMAGE}, "background": [1, 1, 1]}}"#),
+    );
+    let run = dir.raybatch(&["render", "a", "b", "--out", "out"]);
+    assert_eq!(run.status, 1);
+    let lines = run.error_lines();
+    assert_eq!(lines.len(), 1, "{}", run.stderr);
+    assert!(
+        lines[0].contains("b/scene.json") && lines[0].contains("also written by"),
+        "{}",
+        lines[0]
+    );
+    // The first job's image survives.
+    assert_eq!(
+        crate::util::ppm(&dir.read("out/scene.ppm")).at(0, 0),
+        [0, 0, 0]
+    );
+    // The same manifest named twice is rendered once.
+    let twice = dir.raybatch(&["render", "a", "a/scene.json"]);
+    assert_eq!(twice.status, 0, "{}", twice.stderr);
+}
+
+#[test]
+fn exit_statuses_are_0_1_and_2() {
+    let dir = Dir::new();
+    dir.write("good.json", format!("{{{IMAGE}}}"));
+    assert_eq!(dir.raybatch(&["render", "good.json"]).status, 0);
+    assert_eq!(
+        dir.raybatch(&["render", "good.json", "absent.json"]).status,
+        1
+    );
+    std::fs::create_dir_all(dir.join("empty")).unwrap();
+    let empty = dir.raybatch(&["render", "empty"]);
+    assert_eq!(empty.status, 1);
+    assert!(empty.stderr.contains("no *.json"), "{}", empty.stderr);
+    for args in [
+        vec!["render"],
+        vec!["render", "good.json", "--threads", "0"],
+        vec!["render", "good.json", "--threads", "many"],
+        vec!["render", "good.json", "--frobnicate"],
+        vec!["paint", "good.json"],
+        vec!["render", "good.json", "--stats", "empty"],
+    ] {
+        let run = dir.raybatch(&args);
+        assert_eq!(run.status, 2, "{args:?}: {}", run.stderr);
+        assert!(!run.stderr.is_empty());
+    }
+}

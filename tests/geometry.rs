@@ -1,0 +1,191 @@
+//! Hit rules: spheres, planes, triangles, the strict `(tmin, tmax)` interval, transforms.
+//! Images with odd sizes put the centre pixel's ray exactly on the +z axis, so distances
+//! along it are exact.
+
+use crate::util::Dir;
+
+/// A depth render (PFM) of `body` (extra manifest keys) with an 11 × 11 default camera.
+fn depth(dir: &Dir, body: &str) -> crate::util::Pfm {
+    let json = format!(
+        r#"{{"image": {{"width": 11, "height": 11}}, "output": "d.pfm",
+            "integrator": {{"type": "depth"}}, "background": [0, 0, 0], {body}}}"#
+    );
+    dir.pfm_of("d.json", &json, "d.pfm")
+}
+
+#[test]
+fn spheres_are_hit_at_the_near_side_or_from_inside_at_the_far_side() {
+    let dir = Dir::new();
+    let outside = depth(&dir, r#""spheres": [{"center": [0, 0, 5], "radius": 2}]"#);
+    assert_eq!(outside.at(5, 5)[0], 3.0);
+    let inside = depth(&dir, r#""spheres": [{"center": [0, 0, 1], "radius": 2}]"#);
+    assert_eq!(inside.at(5, 5)[0], 3.0);
+    // From the centre every ray leaves at exactly the radius.
+    let centred = depth(&dir, r#""spheres": [{"center": [0, 0, 0], "radius": 2}]"#);
+    for p in &centred.pixels {
+        assert!((p[0] - 2.0).abs() <= 2.0 * f32::EPSILON, "{p:?}");
+    }
+}
+
+#[test]
+fn a_ray_that_only_grazes_a_sphere_misses() {
+    // The centre ray runs along +z and touches the sphere of radius 1 around (1, 0, 5) at
+    // (0, 0, 5): discriminant exactly 0. A radius one ulp larger is a real hit.
+    let dir = Dir::new();
+    let tangent = depth(&dir, r#""spheres": [{"center": [1, 0, 5], "radius": 1}]"#);
+    assert_eq!(tangent.at(5, 5)[0], 0.0);
+    let r = 1.0f64.next_up();
+    let crossing = depth(
+        &dir,
+        &format!(r#""spheres": [{{"center": [1, 0, 5], "radius": {r:?}}}]"#),
+    );
+    assert!((crossing.at(5, 5)[0] - 5.0).abs() < 1e-6);
+}
+
+#[test]
+fn the_interval_is_strict_at_both_ends() {
+    let dir = Dir::new();
+    let sphere = r#""spheres": [{"center": [0, 0, 4], "radius": 1}]"#;
+    // Near side at t = 3, far side at t = 5.
+    let at_tmin = depth(&dir, &format!(r#""tmin": 3, {sphere}"#));
+    assert_eq!(at_tmin.at(5, 5)[0], 5.0, "t = tmin does not count");
+    let past_tmin = depth(&dir, &format!(r#""tmin": 2.999, {sphere}"#));
+    assert_eq!(past_tmin.at(5, 5)[0], 3.0);
+    let at_tmax = depth(&dir, &format!(r#""tmax": 3, {sphere}"#));
+    assert_eq!(at_tmax.at(5, 5)[0], 0.0, "t = tmax does not count");
+    let null_tmax = depth(&dir, &format!(r#""tmin": null, "tmax": null, {sphere}"#));
+    assert_eq!(null_tmax.at(5, 5)[0], 3.0);
+
+    // The same for a triangle (float32 path) at t = 2, with bounds that are not floats.
+    dir.write("tri.obj", "v -1 -1 2\nv 1 -1 2\nv 0 1 2\nf 1 2 3\n");
+    let mesh = r#""meshes": [{"file": "tri.obj"}]"#;
+    assert_eq!(
+        depth(&dir, &format!(r#""tmin": 2, {mesh}"#)).at(5, 5)[0],
+        0.0
+    );
+    assert_eq!(
+        depth(&dir, &format!(r#""tmax": 2, {mesh}"#)).at(5, 5)[0],
+        0.0
+    );
+    let just_below = 2.0f64 - 1e-12;
+    let just_above = 2.0f64 + 1e-12;
+    assert_eq!(
+        depth(&dir, &format!(r#""tmin": {just_below}, {mesh}"#)).at(5, 5)[0],
+        2.0
+    );
+    assert_eq!(
+        depth(&dir, &format!(r#""tmax": {just_above}, {mesh}"#)).at(5, 5)[0],
+        2.0
+    );
+}
+
+#[test]
+fn planes_are_hit_from_both_sides_and_the_nearest_primitive_wins() {
+    let dir = Dir::new();
+    let front = depth(
+        &dir,
+        r#""planes": [{"point": [0, 0, 7], "normal": [0, 0, -1]}]"#,
+    );
+    let back = depth(
+        &dir,
+        r#""planes": [{"point": [0, 0, 7], "normal": [0, 0, 1]}]"#,
+    );
+    assert_eq!(front.at(5, 5)[0], 7.0);
+    assert_eq!(back.at(5, 5)[0], 7.0);
+    let both = depth(
+        &dir,
+        r#""planes": [{"point": [0, 0, 7], "normal": [0, 0, 1]}],
+           "spheres": [{"center": [0, 0, 9], "radius": 1}, {"center": [0, 0, 4], "radius": 1}]"#,
+    );
+    assert_eq!(both.at(5, 5)[0], 3.0);
+}
+
+#[test]
+fn triangles_are_hit_on_both_faces() {
+    let dir = Dir::new();
+    dir.write("ccw.obj", "v -1 -1 2\nv 1 -1 2\nv 0 1 2\nf 1 2 3\n");
+    dir.write("cw.obj", "v -1 -1 2\nv 0 1 2\nv 1 -1 2\nf 1 2 3\n");
+    for file in ["ccw.obj", "cw.obj"] {
+        let image = depth(&dir, &format!(r#""meshes": [{{"file": "{file}"}}]"#));
+        assert_eq!(image.at(5, 5)[0], 2.0, "{file}");
+    }
+}
+
+#[test]
+fn vertices_and_edges_on_pixel_rays_leave_no_gaps() {
+    // A grid of triangles on the plane z = 1 whose vertices are exactly the points where
+    // pixel-centre rays of a 64 × 64 default camera cross it ((u, v) are dyadic): every
+    // ray passes through a vertex shared by six triangles; none may slip through.
+    let dir = Dir::new();
+    let n = 64;
+    let mut obj = String::new();
+    for j in 0..=n + 1 {
+        for i in 0..=n + 1 {
+            // Pixel centres are at u = (2i + 1 − 64)/64; one extra ring outside.
+            let u = (2.0 * f64::from(i) - 1.0 - 64.0) / 64.0;
+            let v = (64.0 - 2.0 * f64::from(j) + 1.0) / 64.0;
+            obj.push_str(&format!("v {u} {v} 1\n"));
+        }
+    }
+    let index = |i: u32, j: u32| j * (n + 2) + i + 1;
+    for j in 0..=n {
+        for i in 0..=n {
+            let (a, b, c, d) = (
+                index(i, j),
+                index(i + 1, j),
+                index(i + 1, j + 1),
+                index(i, j + 1),
+            );
+            obj.push_str(&format!("f {a} {b} {c}\nf {a} {c} {d}\n"));
+        }
+    }
+    dir.write("grid.obj", obj);
+    let image = dir.ppm_of(
+        "g.json",
+        r#"{"image": {"width": 64, "height": 64}, "meshes": [{"file": "grid.obj"}]}"#,
+        "g.ppm",
+    );
+    assert_eq!(
+        image.count([255; 3]),
+        64 * 64,
+        "rays leaked through shared vertices"
+    );
+}
+
+#[test]
+fn a_matrix_and_the_equivalent_scale_rotate_translate_agree() {
+    let dir = Dir::new();
+    dir.write(
+        "ico.obj",
+        raybatch::procedural::to_obj(&raybatch::procedural::icosphere(2), ""),
+    );
+    let render = |name: &str, transform: &str| {
+        let json = format!(
+            r#"{{"image": {{"width": 48, "height": 48}}, "output": "{name}.pfm",
+                "integrator": {{"type": "depth"}},
+                "meshes": [{{"file": "ico.obj", "transform": {transform}}}]}}"#
+        );
+        dir.pfm_of(&format!("{name}.json"), &json, &format!("{name}.pfm"))
+    };
+    // scale 2 along x, then a quarter turn about +z (x → y), then translate to z = 6.
+    let srt = render(
+        "srt",
+        r#"{"scale": [2, 1, 1], "rotate": {"axis": [0, 0, 1], "degrees": 90}, "translate": [0, 0, 6]}"#,
+    );
+    let matrix = render(
+        "m",
+        r#"{"matrix": [0, -1, 0, 0,  2, 0, 0, 0,  0, 0, 1, 6,  0, 0, 0, 1]}"#,
+    );
+    assert_eq!(srt, matrix);
+    // The stretched axis now runs along y: the image is taller than wide.
+    let hit = |img: &crate::util::Pfm, x: usize, y: usize| img.at(x, y)[0] > 0.0;
+    let tall = (0..48).filter(|&y| hit(&srt, 24, y)).count();
+    let wide = (0..48).filter(|&x| hit(&srt, x, 24)).count();
+    assert!(tall * 2 >= wide * 3, "tall {tall}, wide {wide}");
+    // Nearest point on the axis: the sphere's surface at z = 6 − 1 = 5.
+    assert!(
+        (srt.at(24, 24)[0] - 5.0).abs() < 0.05,
+        "{}",
+        srt.at(24, 24)[0]
+    );
+}

@@ -1,0 +1,371 @@
+//! Mesh files written by the tests: OBJ polygons and groups; glTF node hierarchies, scene
+//! selection, strips and fans, skipped points and lines, GLB, external and sparse buffers.
+
+use base64::Engine;
+use serde_json::{Value, json};
+
+use crate::util::{Dir, Pfm, assert_close};
+
+/// Bytes for a glTF buffer, and the bufferViews/accessors describing them.
+#[derive(Default)]
+struct Buffer {
+    bytes: Vec<u8>,
+    views: Vec<Value>,
+    accessors: Vec<Value>,
+}
+
+impl Buffer {
+    /// Adds float VEC3 positions; returns the accessor index.
+    fn positions(&mut self, points: &[[f32; 3]]) -> usize {
+        let offset = self.bytes.len();
+        for p in points {
+            for c in p {
+                self.bytes.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        let lo = [0, 1, 2].map(|k| points.iter().map(|p| p[k]).fold(f32::INFINITY, f32::min));
+        let hi = [0, 1, 2].map(|k| {
+            points
+                .iter()
+                .map(|p| p[k])
+                .fold(f32::NEG_INFINITY, f32::max)
+        });
+        self.view(offset, None);
+        self.accessor(json!({"componentType": 5126, "count": points.len(), "type": "VEC3", "min": lo, "max": hi}))
+    }
+
+    /// Adds u16 indices; returns the accessor index.
+    fn indices(&mut self, indices: &[u16]) -> usize {
+        let offset = self.bytes.len();
+        for i in indices {
+            self.bytes.extend_from_slice(&i.to_le_bytes());
+        }
+        self.view(offset, None);
+        self.accessor(json!({"componentType": 5123, "count": indices.len(), "type": "SCALAR"}))
+    }
+
+    fn view(&mut self, offset: usize, stride: Option<usize>) {
+        let mut view =
+            json!({"buffer": 0, "byteOffset": offset, "byteLength": self.bytes.len() - offset});
+        if let Some(stride) = stride {
+            view["byteStride"] = json!(stride);
+        }
+        self.views.push(view);
+        while !self.bytes.len().is_multiple_of(4) {
+            self.bytes.push(0);
+        }
+    }
+
+    fn accessor(&mut self, mut accessor: Value) -> usize {
+        if accessor.get("bufferView").is_none() {
+            accessor["bufferView"] = json!(self.views.len() - 1);
+        }
+        self.accessors.push(accessor);
+        self.accessors.len() - 1
+    }
+
+    /// The glTF document: `rest` supplies meshes, nodes, scenes; the buffer is embedded.
+    fn document(&self, mut rest: Value) -> Value {
+        let uri = format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&self.bytes)
+        );
+        rest["asset"] = json!({"version": "2.0"});
+        rest["buffers"] = json!([{"byteLength": self.bytes.len(), "uri": uri}]);
+        rest["bufferViews"] = json!(self.views);
+        rest["accessors"] = json!(self.accessors);
+        rest
+    }
+}
+
+/// A unit right triangle in the xy plane: covers the centre ray when placed on the axis
+/// with a small offset.
+const TRIANGLE: [[f32; 3]; 3] = [[-0.5, -0.5, 0.0], [1.0, -0.5, 0.0], [-0.5, 1.0, 0.0]];
+
+/// Depth (PFM) of a 9 × 9 default-camera render of `mesh_file`.
+fn depth_of(dir: &Dir, mesh_file: &str) -> Pfm {
+    let json = format!(
+        r#"{{"image": {{"width": 9, "height": 9}}, "output": "d.pfm",
+            "integrator": {{"type": "depth"}}, "meshes": [{{"file": "{mesh_file}"}}]}}"#
+    );
+    dir.pfm_of("d.json", &json, "d.pfm")
+}
+
+#[test]
+fn node_transforms_compose_from_the_root_down() {
+    // root: translate z=5, scale 2; child: translate z=1 (in the root's frame: z = 5 + 2),
+    // grandchild: rotate 180° about x (flips the triangle), carrying the mesh.
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    let document = buffer.document(json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": positions}}]}],
+        "nodes": [
+            {"translation": [0, 0, 5], "scale": [2, 2, 2], "children": [1]},
+            {"translation": [0, 0, 1], "children": [2]},
+            {"rotation": [1, 0, 0, 0], "mesh": 0}
+        ],
+        "scenes": [{"nodes": [0]}],
+        "scene": 0
+    }));
+    let dir = Dir::new();
+    dir.write("tree.gltf", document.to_string());
+    assert_close(depth_of(&dir, "tree.gltf").at(4, 4)[0], 7.0);
+}
+
+#[test]
+fn the_default_scene_is_read_else_scene_0_else_every_root() {
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    let base = json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": positions}}]}],
+        "nodes": [
+            {"translation": [0, 0, 9], "mesh": 0},
+            {"translation": [0, 0, 3], "mesh": 0},
+            {"translation": [0, 0, 1], "mesh": 0, "children": [3]},
+            {"translation": [0, 0, 1], "mesh": 0}
+        ]
+    });
+    let dir = Dir::new();
+    let cases = [
+        (
+            json!({"scenes": [{"nodes": [1]}, {"nodes": [0]}], "scene": 1}),
+            9.0,
+        ),
+        (json!({"scenes": [{"nodes": [0]}, {"nodes": [1]}]}), 9.0),
+        // No scenes: nodes 0, 1 and 2 are roots (3 is a child of 2, at z = 2).
+        (json!({}), 1.0),
+    ];
+    for (scenes, expected) in cases {
+        let mut document = base.clone();
+        for (k, v) in scenes.as_object().unwrap() {
+            document[k] = v.clone();
+        }
+        dir.write("s.gltf", buffer.document(document).to_string());
+        assert_close(depth_of(&dir, "s.gltf").at(4, 4)[0], expected);
+    }
+    let stats = dir.raybatch(&["render", "d.json", "--stats", "stats.json"]);
+    assert_eq!(stats.status, 0);
+    let line: Value = serde_json::from_slice(&dir.read("stats.json")).unwrap();
+    assert_eq!(line["triangles"], 4, "every root and its children");
+}
+
+#[test]
+fn strips_and_fans_follow_the_gltf_vertex_order() {
+    // Strip over a unit square at z = 2: p0 = (v0, v1, v2), p1 = (v1, v3, v2), both facing
+    // +z. A fan around v0: p_i = (v_{i+1}, v_{i+2}, v0), also facing +z.
+    let square = [
+        [-1.0, -1.0, 2.0],
+        [1.0, -1.0, 2.0],
+        [-1.0, 1.0, 2.0],
+        [1.0, 1.0, 2.0],
+    ];
+    let fan = [
+        [0.0, 0.0, 2.0],
+        [1.0, -1.0, 2.0],
+        [1.0, 1.0, 2.0],
+        [-1.0, 1.0, 2.0],
+        [-1.0, -1.0, 2.0],
+        [1.0, -1.0, 2.0],
+    ];
+    let dir = Dir::new();
+    for (name, points, mode, triangles) in [("strip", &square[..], 5, 2), ("fan", &fan[..], 6, 4)] {
+        let mut buffer = Buffer::default();
+        let positions = buffer.positions(points);
+        let document = buffer.document(json!({
+            "meshes": [{"primitives": [{"attributes": {"POSITION": positions}, "mode": mode}]}],
+            "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}]
+        }));
+        dir.write(&format!("{name}.gltf"), document.to_string());
+        let json = format!(
+            r#"{{"image": {{"width": 8, "height": 8}}, "integrator": {{"type": "normal"}},
+                "camera": {{"forward": [0, 0, 2]}}, "meshes": [{{"file": "{name}.gltf"}}]}}"#
+        );
+        dir.write(&format!("{name}.json"), json);
+        let run = dir.raybatch(&["render", &format!("{name}.json"), "--stats", "s.json"]);
+        assert_eq!(run.status, 0, "{}", run.stderr);
+        let image = crate::util::ppm(&dir.read(&format!("{name}.ppm")));
+        assert_eq!(
+            image.count([128, 128, 255]),
+            64,
+            "{name}: every pixel sees a +z normal"
+        );
+        let stats: Value = serde_json::from_slice(&dir.read("s.json")).unwrap();
+        assert_eq!(stats["triangles"], triangles, "{name}");
+    }
+}
+
+#[test]
+fn points_and_lines_are_skipped_with_a_warning() {
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    let document = buffer.document(json!({
+        "meshes": [{"primitives": [
+            {"attributes": {"POSITION": positions}, "mode": 0},
+            {"attributes": {"POSITION": positions}, "mode": 1},
+            {"attributes": {"POSITION": positions}, "mode": 3},
+            {"attributes": {"POSITION": positions}, "mode": 4}
+        ]}],
+        "nodes": [{"translation": [0, 0, 4], "mesh": 0}], "scenes": [{"nodes": [0]}]
+    }));
+    let dir = Dir::new();
+    dir.write("mixed.gltf", document.to_string());
+    dir.write(
+        "m.json",
+        r#"{"image": {"width": 9, "height": 9}, "meshes": [{"file": "mixed.gltf"}]}"#,
+    );
+    let run = dir.raybatch(&["render", "m.json"]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let warnings: Vec<&str> = run
+        .stderr
+        .lines()
+        .filter(|l| l.contains("warning"))
+        .collect();
+    assert_eq!(warnings.len(), 2, "{}", run.stderr);
+    assert!(
+        warnings.iter().any(|w| w.contains("1 point primitive")),
+        "{warnings:?}"
+    );
+    assert!(
+        warnings.iter().any(|w| w.contains("2 line primitives")),
+        "{warnings:?}"
+    );
+    assert!(
+        warnings
+            .iter()
+            .all(|w| w.contains("m.json") && w.contains("mixed.gltf"))
+    );
+}
+
+#[test]
+fn glb_external_and_sparse_buffers_and_unread_images() {
+    let dir = Dir::new();
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    let indices = buffer.indices(&[0, 1, 2]);
+    let scene = json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": positions}, "indices": indices}]}],
+        "nodes": [{"translation": [0, 0, 6], "mesh": 0}], "scenes": [{"nodes": [0]}],
+        // Images are never read: a missing file and a broken data URI must not matter.
+        "images": [{"uri": "missing.png"}, {"uri": "data:image/png;base64,@@@"}]
+    });
+    let embedded = buffer.document(scene.clone());
+    dir.write("embedded.gltf", embedded.to_string());
+    assert_close(depth_of(&dir, "embedded.gltf").at(4, 4)[0], 6.0);
+
+    // The same buffer in a file beside it, with a percent-encoded name.
+    let mut external = embedded.clone();
+    external["buffers"][0]["uri"] = json!("my%20data.bin");
+    dir.write("my data.bin", &buffer.bytes);
+    dir.write("external.gltf", external.to_string());
+    assert_close(depth_of(&dir, "external.gltf").at(4, 4)[0], 6.0);
+
+    // GLB: 12-byte header, a JSON chunk and a BIN chunk, each 4-byte aligned.
+    let mut json_chunk = embedded.clone();
+    json_chunk["buffers"] = json!([{"byteLength": buffer.bytes.len()}]);
+    let mut json_bytes = json_chunk.to_string().into_bytes();
+    while !json_bytes.len().is_multiple_of(4) {
+        json_bytes.push(b' ');
+    }
+    let mut bin = buffer.bytes.clone();
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
+    let mut glb = Vec::new();
+    glb.extend_from_slice(b"glTF");
+    glb.extend_from_slice(&2u32.to_le_bytes());
+    glb.extend_from_slice(&(total as u32).to_le_bytes());
+    glb.extend_from_slice(&(json_bytes.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"JSON");
+    glb.extend_from_slice(&json_bytes);
+    glb.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"BIN\0");
+    glb.extend_from_slice(&bin);
+    dir.write("binary.glb", glb);
+    assert_close(depth_of(&dir, "binary.glb").at(4, 4)[0], 6.0);
+
+    // Sparse: positions start as all zeros (no bufferView) and two of the three vertices
+    // are substituted; an interleaved view (byteStride 16) holds the substitutes.
+    let mut sparse = Buffer::default();
+    let offset = sparse.bytes.len();
+    for i in [1u16, 2] {
+        sparse.bytes.extend_from_slice(&i.to_le_bytes());
+    }
+    sparse.view(offset, None);
+    let index_view = sparse.views.len() - 1;
+    let offset = sparse.bytes.len();
+    for p in [[2.0f32, -1.0, 0.0], [-1.0, 2.0, 0.0]] {
+        for c in p {
+            sparse.bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    sparse.view(offset, None);
+    let value_view = sparse.views.len() - 1;
+    sparse.accessors.push(json!({
+        "componentType": 5126, "count": 3, "type": "VEC3",
+        "min": [-1, -1, 0], "max": [2, 2, 0],
+        "sparse": {"count": 2, "indices": {"bufferView": index_view, "componentType": 5123},
+                   "values": {"bufferView": value_view}}
+    }));
+    let mut document = sparse.document(json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "nodes": [{"translation": [-0.5, -0.5, 3], "mesh": 0}], "scenes": [{"nodes": [0]}]
+    }));
+    dir.write("sparse.gltf", document.to_string());
+    assert_close(depth_of(&dir, "sparse.gltf").at(4, 4)[0], 3.0);
+
+    // Interleaved positions: every vertex followed by 4 unrelated bytes.
+    let mut interleaved = Buffer::default();
+    for p in TRIANGLE {
+        for c in p {
+            interleaved.bytes.extend_from_slice(&c.to_le_bytes());
+        }
+        interleaved.bytes.extend_from_slice(&f32::NAN.to_le_bytes());
+    }
+    interleaved.view(0, Some(16));
+    interleaved.accessor(json!({"componentType": 5126, "count": 3, "type": "VEC3", "min": [-0.5, -0.5, 0], "max": [1, 1, 0]}));
+    document = interleaved.document(json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "nodes": [{"translation": [0, 0, 2.5], "mesh": 0}], "scenes": [{"nodes": [0]}]
+    }));
+    dir.write("interleaved.gltf", document.to_string());
+    assert_close(depth_of(&dir, "interleaved.gltf").at(4, 4)[0], 2.5);
+}
+
+#[test]
+fn obj_polygons_groups_and_objects_all_render() {
+    // A quad and a pentagon in two groups: 2 + 3 triangles, covering the whole view.
+    let dir = Dir::new();
+    dir.write(
+        "poly.obj",
+        "o first\nv -4 -4 3\nv 0 -4 3\nv 0 4 3\nv -4 4 3\ng second\nv 0 -4 3\nv 4 -4 3\nv 4 0 3\nv 4 4 3\nv 0 4 3\n\
+         usemtl missing\ng first\nf 1 2 3 4\ng second\nf 5 6 7 8 9\n",
+    );
+    dir.write(
+        "p.json",
+        r#"{"image": {"width": 16, "height": 16}, "meshes": [{"file": "poly.obj"}]}"#,
+    );
+    let run = dir.raybatch(&["render", "p.json", "--stats", "s.json"]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let stats: Value = serde_json::from_slice(&dir.read("s.json")).unwrap();
+    assert_eq!(stats["triangles"], 5);
+    let image = crate::util::ppm(&dir.read("p.ppm"));
+    assert_eq!(image.count([255; 3]), 256);
+}
+
+#[test]
+fn a_mesh_can_be_placed_several_times() {
+    let dir = Dir::new();
+    dir.write(
+        "tri.obj",
+        "v -0.5 -0.5 0\nv 1 -0.5 0\nv -0.5 1 0\nf 1 2 3\n",
+    );
+    let image = dir.pfm_of(
+        "two.json",
+        r#"{"image": {"width": 9, "height": 9}, "output": "two.pfm", "integrator": {"type": "depth"},
+            "meshes": [{"file": "tri.obj", "transform": {"translate": [0, 0, 8]}},
+                       {"file": "tri.obj", "transform": {"translate": [0, 0, 4]}}]}"#,
+        "two.pfm",
+    );
+    assert_eq!(image.at(4, 4)[0], 4.0);
+}

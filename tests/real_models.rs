@@ -1,0 +1,189 @@
+//! Real data, outside the repository: the scanned and CAD models of `../shared/models`
+//! (set `RAYBATCH_MODELS` to that folder) and Debian's `assimp-testmodels` glTF files (set
+//! `RAYBATCH_GLTF`, e.g. to /usr/share/assimp/models/glTF2). Ignored by default so
+//! `cargo test` passes on a fresh clone; `.ci/run` runs them with `--include-ignored`.
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use raybatch::mesh::MeshCache;
+use raybatch::triangle::{self, ShearedRay};
+use raybatch::{Manifest, Ray, Scene, SceneGeometry};
+
+use crate::util::Dir;
+
+/// The folder named by `variable`; a missing variable fails the test rather than letting
+/// it pass without looking at anything.
+fn folder(variable: &str) -> PathBuf {
+    let value = std::env::var_os(variable)
+        .unwrap_or_else(|| panic!("set {variable} to run this test (see tests/real_models.rs)"));
+    let path = PathBuf::from(value);
+    assert!(
+        path.is_dir(),
+        "{variable}={} is not a folder",
+        path.display()
+    );
+    std::fs::canonicalize(path).unwrap()
+}
+
+fn files_with(root: &Path, extensions: &[&str]) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut stack = vec![root.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path
+                .extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| extensions.contains(&e.to_ascii_lowercase().as_str()))
+            {
+                found.push(path);
+            }
+        }
+    }
+    found.sort();
+    found
+}
+
+#[test]
+#[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
+fn scanned_models_trace_exactly_like_brute_force() {
+    let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
+    assert!(models.len() >= 5, "{models:?}");
+    for model in models {
+        let dir = Dir::new();
+        dir.write(
+            "m.json",
+            format!(
+                r#"{{"image": {{"width": 8, "height": 8}}, "meshes": [{{"file": {:?}}}]}}"#,
+                model.display().to_string()
+            ),
+        );
+        let manifest = Manifest::load(&dir.join("m.json")).unwrap();
+        let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
+        let triangles = geometry.triangles.clone();
+        let scene = Scene::build(geometry);
+        let (lo, hi) = triangles.iter().flatten().fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), v| {
+                let p = DVec3::from_array(v.map(f64::from));
+                (lo.min(p), hi.max(p))
+            },
+        );
+        let (centre, radius) = ((lo + hi) / 2.0, (hi - lo).length() / 2.0);
+        let (mut hits, count) = (0usize, 400u32);
+        for i in 0..count {
+            // From a sphere around the model toward points inside its box; some rays start
+            // inside the model's box.
+            let a = f64::from(i) * 2.399963;
+            let z = 1.0 - 2.0 * (f64::from(i) + 0.5) / f64::from(count);
+            let s = (1.0 - z * z).sqrt();
+            let around = DVec3::new(s * a.cos(), z, s * a.sin());
+            let start = if i % 5 == 0 { 0.2 } else { 1.6 };
+            let origin = centre + around * radius * start;
+            let target = lo
+                + (hi - lo)
+                    * DVec3::new(
+                        (a * 1.7).sin().abs(),
+                        (a * 0.3).cos().abs(),
+                        (a * 2.9).sin().abs(),
+                    );
+            let r = Ray {
+                origin,
+                direction: (target - origin).normalize(),
+                tmin: 0.0,
+                tmax: f64::INFINITY,
+            };
+            let sheared = ShearedRay::new(r.origin.as_vec3(), r.direction.as_vec3());
+            let mut best: Option<f32> = None;
+            for t in &triangles {
+                if let Some(h) = triangle::intersect(
+                    &sheared,
+                    t[0],
+                    t[1],
+                    t[2],
+                    0.0,
+                    best.unwrap_or(f32::INFINITY),
+                ) {
+                    best = Some(h.t);
+                }
+            }
+            let got = scene.closest_hit(&r).map(|h| h.t as f32);
+            assert_eq!(got, best, "{}: ray {i}", model.display());
+            assert_eq!(
+                scene.any_hit(&r),
+                best.is_some(),
+                "{}: ray {i}",
+                model.display()
+            );
+            hits += usize::from(best.is_some());
+        }
+        assert!(
+            hits > count as usize / 4,
+            "{}: only {hits} hits",
+            model.display()
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
+fn scanned_models_render_as_a_batch_with_shared_loads() {
+    let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
+    let dir = Dir::new();
+    for (i, model) in models.iter().enumerate() {
+        for integrator in ["hit", "depth", "normal"] {
+            dir.write(
+                &format!("jobs/{i:02}-{integrator}.json"),
+                format!(
+                    r#"{{"image": {{"width": 64, "height": 48}}, "output": "{i:02}-{integrator}.pfm",
+                        "camera": {{"look_from": [0, 0.5, 3], "look_at": [0, 0, 0]}},
+                        "integrator": {{"type": "{integrator}"}},
+                        "meshes": [{{"file": {:?}}}]}}"#,
+                    model.display().to_string()
+                ),
+            );
+        }
+    }
+    let run = dir.raybatch(&["render", "jobs", "--out", "out", "--stats", "stats.jsonl"]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    assert_eq!(
+        dir.files().iter().filter(|f| f.starts_with("out/")).count(),
+        models.len() * 3
+    );
+}
+
+#[test]
+#[ignore = "needs RAYBATCH_GLTF (Debian's assimp-testmodels glTF2 folder)"]
+fn every_debian_gltf_file_loads_or_is_refused_cleanly() {
+    let files = files_with(&folder("RAYBATCH_GLTF"), &["gltf", "glb"]);
+    assert!(files.len() >= 20, "{}", files.len());
+    let dir = Dir::new();
+    for (i, file) in files.iter().enumerate() {
+        dir.write(
+            &format!("jobs/{i:03}.json"),
+            format!(
+                r#"{{"image": {{"width": 16, "height": 16}}, "output": "{i:03}.ppm",
+                    "camera": {{"look_from": [2, 2, 4], "look_at": [0, 0, 0]}},
+                    "integrator": {{"type": "normal"}}, "meshes": [{{"file": {:?}}}]}}"#,
+                file.display().to_string()
+            ),
+        );
+    }
+    let run = dir.raybatch(&["render", "jobs", "--out", "out"]);
+    // Some of these files are broken on purpose: a job may fail, the process may not.
+    assert!(run.status == 0 || run.status == 1, "{}", run.stderr);
+    let failed = run.error_lines();
+    let rendered = dir.files().iter().filter(|f| f.starts_with("out/")).count();
+    assert_eq!(failed.len() + rendered, files.len(), "{}", run.stderr);
+    assert!(
+        rendered > files.len() / 2,
+        "only {rendered} of {} rendered",
+        files.len()
+    );
+    for line in failed {
+        assert!(line.contains("meshes[0].file"), "{line}");
+    }
+}

@@ -1,0 +1,449 @@
+//! Watertightness and traversal robustness, each against an independent truth: rays that
+//! must hit a closed surface, brute force over every primitive, float64 formulas. Each
+//! obvhs trap named in DEVELOPERS.md has a test here showing ours does not have it.
+
+use std::sync::Arc;
+
+use glam::{DMat4, DVec3};
+use raybatch::bvh::{BuildPreset, Bvh};
+use raybatch::mesh::{Geometry, Instance, MeshFile};
+use raybatch::procedural;
+use raybatch::sphere::Sphere;
+use raybatch::triangle::{self, ShearedRay};
+use raybatch::{Ray, Scene, SceneGeometry};
+
+fn placed(geometry: &Geometry, transform: DMat4) -> SceneGeometry {
+    let mesh = Arc::new(MeshFile {
+        geometries: vec![geometry.clone()],
+        instances: vec![Instance {
+            geometry: 0,
+            transform: DMat4::IDENTITY,
+        }],
+        warnings: Vec::new(),
+    });
+    let mut scene = SceneGeometry::default();
+    scene.add_mesh(&mesh, transform, "test".as_ref()).unwrap();
+    scene
+}
+
+fn ray(origin: DVec3, toward: DVec3) -> Ray {
+    Ray {
+        origin,
+        direction: (toward - origin).normalize(),
+        tmin: 0.0,
+        tmax: f64::INFINITY,
+    }
+}
+
+fn point(p: [f32; 3]) -> DVec3 {
+    DVec3::from_array(p.map(f64::from))
+}
+
+/// Every vertex and five points along every edge of every triangle (as placed in the
+/// world, so they lie exactly on the shared float32 geometry).
+fn shared_targets(triangles: &[[[f32; 3]; 3]]) -> Vec<DVec3> {
+    let mut targets = Vec::new();
+    for t in triangles {
+        for k in 0..3 {
+            let (a, b) = (point(t[k]), point(t[(k + 1) % 3]));
+            targets.push(a);
+            for f in [0.5, 0.25, 1.0 / 3.0, 0.7, 0.9] {
+                targets.push(a + (b - a) * f);
+            }
+        }
+    }
+    targets
+}
+
+/// Closed meshes, interior points of each, and the scales and offsets they are placed at.
+#[test]
+fn rays_through_shared_vertices_and_edges_of_closed_meshes_never_leak() {
+    let torus = procedural::torus(1.0, 0.4, 24, 12);
+    let meshes: [(&str, Geometry, Vec<DVec3>); 3] = [
+        (
+            "icosphere",
+            procedural::icosphere(3),
+            vec![DVec3::ZERO, DVec3::new(0.3, -0.2, 0.1)],
+        ),
+        (
+            "cube",
+            procedural::cube(),
+            vec![DVec3::ZERO, DVec3::new(0.1, 0.2, -0.3)],
+        ),
+        (
+            "torus",
+            torus,
+            vec![DVec3::new(1.0, 0.0, 0.0), DVec3::new(0.0, 0.1, -1.05)],
+        ),
+    ];
+    let placements = [
+        (1.0, DVec3::ZERO),
+        (3.7, DVec3::new(0.3, -1.1, 2.0)),
+        (1e-3, DVec3::new(1e-3, 0.0, -2e-3)),
+        (1e4, DVec3::new(1e5, -2e5, 3e4)),
+    ];
+    let mut rays = 0u64;
+    for (name, geometry, interior) in &meshes {
+        for &(scale, offset) in &placements {
+            let transform =
+                DMat4::from_translation(offset) * DMat4::from_scale(DVec3::splat(scale));
+            let world = placed(geometry, transform);
+            let triangles = world.triangles.clone();
+            let scene = Scene::build(world);
+            let (mut leaks, mut control_leaks) = (0, 0);
+            for inside in interior {
+                let origin = offset + *inside * scale;
+                for target in shared_targets(&triangles) {
+                    let r = ray(origin, target);
+                    rays += 1;
+                    if scene.closest_hit(&r).is_none() || !scene.any_hit(&r) {
+                        leaks += 1;
+                    }
+                    if !moller_trumbore_hits(&triangles, &r) {
+                        control_leaks += 1;
+                    }
+                }
+            }
+            assert_eq!(leaks, 0, "{name} at scale {scale}: rays leaked");
+            // The same rays through obvhs' Möller–Trumbore test (brute force, no tree)
+            // do leak: the rays really are on the shared edges and vertices.
+            assert!(
+                control_leaks > 0,
+                "{name} at scale {scale}: the control did not leak"
+            );
+        }
+    }
+    assert!(rays > 200_000, "{rays}");
+}
+
+fn moller_trumbore_hits(triangles: &[[[f32; 3]; 3]], r: &Ray) -> bool {
+    let ray = obvhs::ray::Ray::new_inf(r.origin.as_vec3().into(), r.direction.as_vec3().into());
+    triangles.iter().any(|t| {
+        let tri = obvhs::triangle::Triangle {
+            v0: t[0].into(),
+            v1: t[1].into(),
+            v2: t[2].into(),
+        };
+        tri.intersect(&ray) < f32::INFINITY
+    })
+}
+
+/// A deterministic stream of numbers in [0, 1).
+struct Numbers(u64);
+
+impl Numbers {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.next()
+    }
+    fn vector(&mut self, size: f64) -> DVec3 {
+        DVec3::new(
+            self.range(-size, size),
+            self.range(-size, size),
+            self.range(-size, size),
+        )
+    }
+}
+
+/// Random triangles of many sizes (some needles and degenerate ones), random rays
+/// (including axis-aligned and nearly axis-aligned ones).
+fn soup(numbers: &mut Numbers, count: usize) -> (Vec<[[f32; 3]; 3]>, Vec<Ray>) {
+    let mut triangles = Vec::new();
+    for i in 0..count {
+        let centre = numbers.vector(10.0);
+        let size = [0.01, 0.3, 2.0, 8.0][i % 4];
+        let mut t = [0; 3].map(|_| (centre + numbers.vector(size)).as_vec3().to_array());
+        match i % 50 {
+            0 => t[2] = t[1], // degenerate
+            1 => {
+                t[2] = (point(t[0]) + (point(t[1]) - point(t[0])) * 0.5)
+                    .as_vec3()
+                    .to_array()
+            } // needle
+            2 => t[1][2] = t[0][2], // axis-aligned edge
+            _ => {}
+        }
+        triangles.push(t);
+    }
+    let mut rays = Vec::new();
+    for i in 0..3000 {
+        let origin = numbers.vector(14.0);
+        let mut direction = numbers.vector(1.0);
+        match i % 6 {
+            0 => direction = DVec3::new(0.0, 0.0, if i % 12 == 0 { 1.0 } else { -1.0 }),
+            1 => direction = DVec3::new(1e-9, 1.0, -0.0),
+            2 => direction.x = 0.0,
+            _ => {}
+        }
+        let tmin = if i % 7 == 0 {
+            numbers.range(0.0, 5.0)
+        } else {
+            0.0
+        };
+        let tmax = if i % 5 == 0 {
+            numbers.range(5.0, 20.0)
+        } else {
+            f64::INFINITY
+        };
+        rays.push(Ray {
+            origin,
+            direction: direction.normalize(),
+            tmin,
+            tmax,
+        });
+    }
+    (triangles, rays)
+}
+
+/// The nearest hit by testing every triangle with the same watertight test.
+fn brute_force(triangles: &[[[f32; 3]; 3]], r: &Ray) -> Option<f32> {
+    let sheared = ShearedRay::new(r.origin.as_vec3(), r.direction.as_vec3());
+    let tmin = raybatch::bvh::f32_at_most(r.tmin);
+    let mut tmax = raybatch::bvh::f32_at_least(r.tmax);
+    let mut best = None;
+    for t in triangles {
+        if let Some(hit) = triangle::intersect(&sheared, t[0], t[1], t[2], tmin, tmax) {
+            tmax = hit.t;
+            best = Some(hit.t);
+        }
+    }
+    best
+}
+
+#[test]
+fn traversal_finds_what_brute_force_finds_with_every_preset() {
+    let mut numbers = Numbers(7);
+    let (triangles, rays) = soup(&mut numbers, 4000);
+    let truth: Vec<Option<f32>> = rays.iter().map(|r| brute_force(&triangles, r)).collect();
+    assert!(
+        truth.iter().filter(|t| t.is_some()).count() > 500,
+        "the rays must hit often"
+    );
+    for preset in BuildPreset::ALL {
+        let scene = Scene::build_with(
+            SceneGeometry {
+                triangles: triangles.clone(),
+                ..SceneGeometry::default()
+            },
+            preset,
+        );
+        for (r, expected) in rays.iter().zip(&truth) {
+            let got = scene.closest_hit(r).map(|h| h.t as f32);
+            assert_eq!(got, *expected, "{preset:?}: {r:?}");
+            assert_eq!(
+                scene.any_hit(r),
+                expected.is_some(),
+                "{preset:?} any-hit: {r:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn ten_thousand_spheres_trace_like_brute_force() {
+    let mut numbers = Numbers(3);
+    let spheres: Vec<Sphere> = (0..10_000)
+        .map(|_| Sphere {
+            center: numbers.vector(50.0),
+            radius: numbers.range(0.01, 1.5),
+        })
+        .collect();
+    let scene = Scene::build(SceneGeometry {
+        spheres: spheres.clone(),
+        ..SceneGeometry::default()
+    });
+    let mut hits = 0;
+    for _ in 0..2000 {
+        let r = ray(numbers.vector(60.0), numbers.vector(20.0));
+        let mut best: Option<(f64, u32)> = None;
+        for (i, s) in spheres.iter().enumerate() {
+            if let Some(t) = s.intersect(&r, best.map_or(r.tmax, |b| b.0)) {
+                best = Some((t, i as u32));
+            }
+        }
+        let got = scene.closest_hit(&r).map(|h| h.t);
+        assert_eq!(got, best.map(|b| b.0));
+        assert_eq!(scene.any_hit(&r), best.is_some());
+        hits += usize::from(best.is_some());
+    }
+    assert!(hits > 200, "{hits}");
+}
+
+#[test]
+fn a_deep_tree_never_overflows_the_traversal_stack() {
+    // obvhs' CWBVH stack has 32 entries and drops the rest. Build a degenerate binary tree
+    // by hand (each inner node: a leaf and the rest of the chain), so the wide tree is
+    // hundreds of levels deep, and aim a ray through every box: it misses every triangle
+    // but the last one, which lies deepest.
+    use obvhs::aabb::Aabb;
+    use obvhs::bvh2::{Bvh2, node::Bvh2Node};
+    let n = 3000;
+    let mut triangles = Vec::new();
+    for k in 0..n {
+        let z = 1.0 + k as f32;
+        // Its box contains the z axis, the triangle does not (x + y ≥ 0.5 inside).
+        triangles.push([[1.0, -0.5, z], [-0.5, 1.0, z], [1.0, 1.0, z]]);
+    }
+    let last = n as f32 + 1.0;
+    triangles.push([[-1.0, -1.0, last], [1.0, -1.0, last], [0.0, 1.0, last]]);
+    let bounds: Vec<raybatch::bvh::Bounds<f32>> = triangles
+        .iter()
+        .map(|t| raybatch::bvh::Bounds {
+            min: [0, 1, 2].map(|a| t.iter().map(|v| v[a]).fold(f32::INFINITY, f32::min)),
+            max: [0, 1, 2].map(|a| t.iter().map(|v| v[a]).fold(f32::NEG_INFINITY, f32::max)),
+        })
+        .collect();
+    let aabb = |b: &raybatch::bvh::Bounds<f32>| Aabb::new(b.min.into(), b.max.into());
+    // Node 2k: inner (children 2k+1, 2k+2); node 2k+1: leaf of triangle k.
+    let mut bvh2 = Bvh2::default();
+    let m = triangles.len();
+    for k in 0..m - 1 {
+        let rest = bounds[k..]
+            .iter()
+            .fold(aabb(&bounds[k]), |acc, b| acc.union(&aabb(b)));
+        bvh2.nodes.push(Bvh2Node::new(rest, 0, 2 * k as u32 + 1));
+        bvh2.nodes
+            .push(Bvh2Node::new(aabb(&bounds[k]), 1, k as u32));
+    }
+    bvh2.nodes
+        .push(Bvh2Node::new(aabb(&bounds[m - 1]), 1, (m - 1) as u32));
+    bvh2.primitive_indices = (0..m as u32).collect();
+
+    let bvh: Bvh<f32> = Bvh::from_bvh2(&bvh2, &bounds, |prims| (prims[0], 1));
+    assert!(bvh.stack_bound() > 1000, "bound {}", bvh.stack_bound());
+
+    let origin = glam::Vec3::new(0.0, 0.0, 0.0);
+    let direction = glam::Vec3::Z;
+    let boxes = raybatch::bvh::BoxRay::new(origin.to_array(), direction.to_array(), 0.0);
+    let sheared = ShearedRay::new(origin, direction);
+    let test = |i: u32, tmax: f32| {
+        let t = &triangles[i as usize];
+        triangle::intersect(&sheared, t[0], t[1], t[2], 0.0, tmax)
+    };
+    let mut tmax = f32::INFINITY;
+    let mut visited = 0;
+    bvh.closest(&boxes, &mut tmax, |first, _, tmax| {
+        visited += 1;
+        if let Some(hit) = test(first, *tmax) {
+            *tmax = hit.t;
+        }
+    });
+    assert!(
+        (tmax - last).abs() <= last * 1e-6,
+        "the deepest triangle must be found: {tmax}"
+    );
+    assert_eq!(visited, m, "every leaf box is entered");
+    assert!(bvh.any(&boxes, f32::INFINITY, |first, _| {
+        test(first, f32::INFINITY).is_some()
+    }));
+}
+
+#[test]
+fn hits_closer_than_1e_4_count_when_tmin_is_zero() {
+    // obvhs' CWBVH node test starts every box at t = 1e-4 whatever the ray's tmin.
+    let tri = [[-1.0, -1.0, 5e-5], [1.0, -1.0, 5e-5], [0.0, 1.0, 5e-5]];
+    let scene = Scene::build(SceneGeometry {
+        triangles: vec![tri],
+        ..SceneGeometry::default()
+    });
+    let mut r = ray(DVec3::ZERO, DVec3::Z);
+    let hit = scene.closest_hit(&r).expect("hit at 5e-5");
+    assert!((hit.t - 5e-5).abs() < 5e-5 * 1e-6, "{}", hit.t);
+    r.tmin = 1e-4;
+    assert!(scene.closest_hit(&r).is_none());
+    assert!(!scene.any_hit(&r));
+}
+
+#[test]
+fn tiny_and_zero_direction_components_find_real_hits() {
+    // Tiny: obvhs' safe_inverse turns 1e-9 into ±1/ε and misses this triangle, reached at
+    // x = 1e8 where y has climbed to 0.1.
+    let far = [[1.0e8, 0.05, -1.0], [1.0e8, 0.15, -1.0], [1.0e8, 0.1, 1.0]];
+    let scene = Scene::build(SceneGeometry {
+        triangles: vec![far],
+        ..SceneGeometry::default()
+    });
+    let r = Ray {
+        origin: DVec3::ZERO,
+        direction: DVec3::new(1.0, 1e-9, 0.0).normalize(),
+        tmin: 0.0,
+        tmax: f64::INFINITY,
+    };
+    let hit = scene.closest_hit(&r).expect("tiny component");
+    assert!((hit.t - 1.0e8).abs() < 10.0, "{}", hit.t);
+
+    // Zero: rays along +z starting exactly in the plane of a cube face (so ∞·0 appears in
+    // the box test) and through the cube's edges: each must hit the near face at z = -1.
+    let scene = Scene::build(placed(
+        &procedural::cube(),
+        DMat4::from_scale(DVec3::splat(2.0)),
+    ));
+    for x in [-1.0, -0.5, 0.0, 0.5, 1.0] {
+        for y in [-1.0, -0.25, 0.0, 1.0] {
+            for dz in [1.0, -1.0] {
+                let r = Ray {
+                    origin: DVec3::new(x, y, -5.0 * dz),
+                    direction: DVec3::new(0.0, -0.0, dz),
+                    tmin: 0.0,
+                    tmax: f64::INFINITY,
+                };
+                let hit = scene
+                    .closest_hit(&r)
+                    .unwrap_or_else(|| panic!("({x}, {y}) {dz}"));
+                assert_eq!(hit.t, 4.0, "({x}, {y}) {dz}");
+            }
+        }
+    }
+}
+
+#[test]
+fn a_tiny_far_sphere_matches_float64_where_the_naive_float32_formula_fails() {
+    // Radius 1 at distance 1e4, seen by a camera zoomed 5000x: about 800 pixels.
+    let (w, h) = (64u32, 64u32);
+    let (c, r) = ([0.0, 0.0, 1.0e4], 1.0);
+    let dir = crate::util::Dir::new();
+    let image = dir.ppm_of(
+        "tiny.json",
+        r#"{"image": {"width": 64, "height": 64},
+            "camera": {"right": [2e-4, 0, 0], "up": [0, 2e-4, 0]},
+            "spheres": [{"center": [0, 0, 10000], "radius": 1}]}"#,
+        "tiny.ppm",
+    );
+    let (mut reference_hits, mut naive_hits, mut compared) = (0, 0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            let u = 2.0 * (f64::from(x) + 0.5) / f64::from(w) - 1.0;
+            let v = 1.0 - 2.0 * (f64::from(y) + 0.5) / f64::from(h);
+            let d = DVec3::new(u * 2e-4, v * 2e-4, 1.0).normalize();
+            // Float64: squared distance from the centre to the ray's line.
+            let cv = DVec3::from_array(c);
+            let distance2 = cv.cross(d).length_squared();
+            let margin = (distance2 - r * r).abs();
+            let hit = distance2 < r * r;
+            if margin > 1e-9 {
+                compared += 1;
+                let got = image.at(x as usize, y as usize) == [255; 3];
+                assert_eq!(got, hit, "pixel ({x}, {y})");
+            }
+            reference_hits += usize::from(hit);
+            // The tutorial's formula in float32.
+            let d32 = d.as_vec3();
+            let oc = -glam::Vec3::from_array([c[0] as f32, c[1] as f32, c[2] as f32]);
+            let b = oc.dot(d32);
+            let discriminant = b * b - (oc.dot(oc) - 1.0);
+            naive_hits += usize::from(discriminant > 0.0 && -b > 0.0);
+        }
+    }
+    assert!(reference_hits > 500, "{reference_hits}");
+    assert!(compared > 4000);
+    assert_eq!(
+        naive_hits, 0,
+        "the naive formula was expected to see nothing"
+    );
+}

@@ -1,0 +1,30 @@
+//! raybatch's integration tests: one test binary (one link, one run) with a module per
+//! area. Each checks behaviour against truth computed independently of the code under
+//! test: integer pixel masks, float64 formulas, brute-force searches, hand-written files.
+//!
+//! - `util`: the harness: a temp folder, the real `raybatch` binary run inside it, and
+//!   independent PPM/PFM readers.
+//! - `canonical`: the seed's scene pixel for pixel; P3/P6; thread counts; shipped scenes.
+//! - `camera`: the pixel-to-ray mapping of both camera forms.
+//! - `geometry`: hit rules for spheres, planes and triangles; transforms.
+//! - `integrators`: what `hit`, `depth` and `normal` write.
+//! - `output`: file formats, encodings, output paths, `--out`, `--stats`.
+//! - `meshes`: OBJ and glTF fixtures written by the tests.
+//! - `errors`: bad manifests and mesh files refused with a place and cause, no partial
+//!   files, batches going on, exit statuses.
+//! - `robustness`: watertightness, traversal against brute force, deep trees, tiny
+//!   direction components, tiny far spheres.
+//! - `real_models`: the scanned models of `../shared/models` and Debian's glTF test files;
+//!   ignored by default (run by `.ci/run` with `--include-ignored`).
+
+mod util;
+
+mod camera;
+mod canonical;
+mod errors;
+mod geometry;
+mod integrators;
+mod meshes;
+mod output;
+mod real_models;
+mod robustness;
