@@ -290,8 +290,8 @@ pub fn model_files() -> Vec<(&'static str, Vec<u8>)> {
 }
 
 /// A glTF scene with a node hierarchy: a base cube carrying a rotated, scaled cube on top
-/// (whose transform composes with its parent's), a hexagon as a triangle fan, a ribbon as
-/// a triangle strip, and a line primitive that renderers skip.
+/// (whose transform composes with its parent's), a hexagon as a triangle fan and a ribbon
+/// as a triangle strip.
 fn stack_gltf() -> String {
     let c = cube();
     let cube_primitive = GltfPrimitive {
@@ -322,11 +322,6 @@ fn stack_gltf() -> String {
         indices: None,
         mode: 5,
     };
-    let line = GltfPrimitive {
-        positions: vec![[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
-        indices: None,
-        mode: 1,
-    };
     let quarter_turn_y = [
         0.0,
         std::f32::consts::FRAC_1_SQRT_2,
@@ -346,16 +341,10 @@ fn stack_gltf() -> String {
     fan.rotation = quarter_turn_y;
     let mut strip = GltfNode::new(Some(2));
     strip.translation = [0.9, -0.25, 0.0];
-    let wire = GltfNode::new(Some(3));
     to_gltf(
-        &[
-            vec![cube_primitive],
-            vec![hexagon],
-            vec![ribbon],
-            vec![line],
-        ],
-        &[base, top, fan, strip, wire],
-        &[0, 2, 3, 4],
+        &[vec![cube_primitive], vec![hexagon], vec![ribbon]],
+        &[base, top, fan, strip],
+        &[0, 2, 3],
     )
 }
 

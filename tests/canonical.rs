@@ -107,3 +107,17 @@ fn every_shipped_scene_renders() {
         .count();
     assert_eq!(dir.files().len(), manifests, "{:?}", dir.files());
 }
+
+#[test]
+fn the_committed_models_are_what_the_generator_writes() {
+    // `cargo run --example make_models` regenerates models/; nothing there is hand-edited.
+    let files = raybatch::procedural::model_files();
+    assert!(!files.is_empty());
+    for (name, bytes) in files {
+        let committed = std::fs::read(repo(&format!("models/{name}"))).unwrap();
+        assert!(
+            committed == bytes,
+            "models/{name} differs from the generator's output"
+        );
+    }
+}
