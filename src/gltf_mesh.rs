@@ -23,10 +23,10 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         place: Place(place),
         message,
     };
-    let gltf = gltf::Gltf::from_slice(bytes).map_err(|e| fail(None, shorten(&e.to_string())))?;
-    let buffers =
-        load_buffers(&gltf, path).map_err(|(place, message)| fail(Some(place), message))?;
-    let document = &gltf.document;
+    let (document, blob) = open(bytes).map_err(|e| fail(None, shorten(&e.to_string())))?;
+    let buffers = load_buffers(&document, blob, path)
+        .map_err(|(place, message)| fail(Some(place), message))?;
+    let document = &document;
 
     let roots: Vec<gltf::Node> = match document
         .default_scene()
@@ -111,6 +111,34 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         ));
     }
     Ok(mesh)
+}
+
+/// Parses and validates a document. Required extensions that cannot change the geometry
+/// (materials, textures, lights) are dropped before validation, and so is
+/// `KHR_mesh_quantization`, whose integer positions [`read_accessor`] decodes; any other
+/// required extension (Draco, meshopt, GPU instancing...) is refused by the validator.
+fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<Vec<u8>>), gltf::Error> {
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes)?;
+    let mut root = gltf.document.into_json();
+    root.extensions_required
+        .retain(|name| !geometry_neutral(name));
+    Ok((gltf::Document::from_json(root)?, gltf.blob))
+}
+
+fn geometry_neutral(extension: &str) -> bool {
+    ["KHR_materials_", "KHR_texture_", "EXT_texture_"]
+        .iter()
+        .any(|prefix| extension.starts_with(prefix))
+        || [
+            "KHR_mesh_quantization",
+            "KHR_lights_punctual",
+            "EXT_lights_image_based",
+            "MSFT_texture_dds",
+            "KHR_xmp_json_ld",
+            "KHR_techniques_webgl",
+            "KHR_technique_webgl",
+        ]
+        .contains(&extension)
 }
 
 /// The gltf crate lists every validation failure; a file missing one field per accessor
@@ -351,11 +379,15 @@ fn component(bytes: &[u8], data_type: DataType, normalized: bool) -> f64 {
 }
 
 /// Every buffer's bytes: the GLB binary chunk, a `data:` URI, or a file beside the glTF.
-fn load_buffers(gltf: &gltf::Gltf, path: &Path) -> Result<Vec<Vec<u8>>, (String, String)> {
+fn load_buffers(
+    document: &gltf::Document,
+    blob: Option<Vec<u8>>,
+    path: &Path,
+) -> Result<Vec<Vec<u8>>, (String, String)> {
     let folder = path.parent().unwrap_or(Path::new(""));
-    let mut blob = gltf.blob.as_deref();
+    let mut blob = blob;
     let mut buffers = Vec::new();
-    for buffer in gltf.document.buffers() {
+    for buffer in document.buffers() {
         let place = format!("buffers[{}]", buffer.index());
         let data = match buffer.source() {
             gltf::buffer::Source::Bin => blob

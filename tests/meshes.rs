@@ -369,3 +369,43 @@ fn a_mesh_can_be_placed_several_times() {
     );
     assert_eq!(image.at(4, 4)[0], 4.0);
 }
+
+#[test]
+fn quantized_positions_and_material_extensions_are_accepted_but_draco_is_refused() {
+    // KHR_mesh_quantization: int16 positions (not normalized), scaled back by the node.
+    let mut buffer = Buffer::default();
+    let offset = buffer.bytes.len();
+    for p in [[-50i16, -50, 0], [100, -50, 0], [-50, 100, 0]] {
+        for c in p {
+            buffer.bytes.extend_from_slice(&c.to_le_bytes());
+        }
+        buffer.bytes.extend_from_slice(&[0, 0]); // int16 VEC3 elements are padded to 8 bytes
+    }
+    buffer.view(offset, Some(8));
+    buffer.accessor(json!({"componentType": 5122, "count": 3, "type": "VEC3", "min": [-50, -50, 0], "max": [100, 100, 0]}));
+    let document = buffer.document(json!({
+        "extensionsUsed": ["KHR_mesh_quantization", "KHR_materials_unlit"],
+        "extensionsRequired": ["KHR_mesh_quantization", "KHR_materials_unlit"],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+        "nodes": [{"translation": [0, 0, 5], "scale": [0.01, 0.01, 0.01], "mesh": 0}],
+        "scenes": [{"nodes": [0]}]
+    }));
+    let dir = Dir::new();
+    dir.write("quantized.gltf", document.to_string());
+    assert_close(depth_of(&dir, "quantized.gltf").at(4, 4)[0], 5.0);
+
+    let mut draco = document.clone();
+    draco["extensionsRequired"] = json!(["KHR_draco_mesh_compression"]);
+    dir.write("draco.gltf", draco.to_string());
+    dir.write(
+        "x.json",
+        r#"{"image": {"width": 2, "height": 2}, "meshes": [{"file": "draco.gltf"}]}"#,
+    );
+    let run = dir.raybatch(&["render", "x.json"]);
+    assert_eq!(run.status, 1);
+    assert!(
+        run.stderr.contains("KHR_draco_mesh_compression"),
+        "{}",
+        run.stderr
+    );
+}
