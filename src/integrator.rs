@@ -9,11 +9,11 @@
 
 use crate::manifest::Rgb;
 use crate::ray::Ray;
-use crate::scene::Scene;
+use crate::scene::Tracer;
 
-/// The value of one camera ray (linear RGB).
+/// The value of one camera ray (linear RGB), traced by any [`Tracer`].
 pub trait Integrator: Sync {
-    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb;
+    fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb;
 }
 
 /// `hit`: `[1, 1, 1]` where the ray hits anything, else the background. An any-hit
@@ -25,7 +25,7 @@ pub struct HitIntegrator {
 
 impl Integrator for HitIntegrator {
     #[inline]
-    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb {
+    fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
         if scene.any_hit(ray) {
             [1.0; 3]
         } else {
@@ -43,7 +43,7 @@ pub struct DepthIntegrator {
 
 impl Integrator for DepthIntegrator {
     #[inline]
-    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb {
+    fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
         match scene.closest_hit(ray) {
             Some(hit) => [hit.t / self.scale; 3],
             None => self.background,
@@ -60,7 +60,7 @@ pub struct NormalIntegrator {
 
 impl Integrator for NormalIntegrator {
     #[inline]
-    fn value(&self, scene: &Scene, ray: &Ray) -> Rgb {
+    fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
         match scene.closest_hit(ray) {
             Some(hit) => {
                 let n = scene.normal(ray, &hit);

@@ -14,7 +14,7 @@ use crate::error::{Error, JobError};
 use crate::manifest::Manifest;
 use crate::mesh::MeshCache;
 use crate::render;
-use crate::scene::{Scene, SceneGeometry};
+use crate::scene::{Scene, SceneGeometry, Tracer};
 
 /// Settings shared by every job of a batch.
 #[derive(Debug, Clone, Default)]

@@ -11,7 +11,7 @@ use crate::image::Image;
 use crate::integrator::{DepthIntegrator, HitIntegrator, Integrator, NormalIntegrator};
 use crate::manifest::{IntegratorDesc, Manifest};
 use crate::sampler::Sampler;
-use crate::scene::Scene;
+use crate::scene::Tracer;
 
 /// Side of the square tiles, in pixels; also the height of a parallel band.
 pub const TILE: u32 = 16;
@@ -50,10 +50,10 @@ pub fn check_supported(manifest: &Manifest) -> Result<(), ManifestError> {
     }
 }
 
-/// Renders the manifest's image of `scene`. `progress` is called with the number of pixels
+/// Renders the manifest's image of `scene` with any tracer. `progress` is called with the number of pixels
 /// finished, band by band, from any thread.
-pub fn render(
-    scene: &Scene,
+pub fn render<T: Tracer>(
+    scene: &T,
     manifest: &Manifest,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Image, ManifestError> {
@@ -94,8 +94,8 @@ pub fn render(
 }
 
 /// Renders every pixel of `image` with one integrator, specialized at compile time.
-pub fn render_with<I: Integrator>(
-    scene: &Scene,
+pub fn render_with<T: Tracer, I: Integrator>(
+    scene: &T,
     integrator: &I,
     view: &View,
     image: &mut Image,

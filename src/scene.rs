@@ -168,13 +168,32 @@ pub enum Primitive {
     Plane(u32),
     /// Index into the manifest's `spheres`.
     Sphere(u32),
-    /// A triangle: its block and lane in the tree's layout, and barycentrics.
-    Triangle {
-        block: u32,
-        lane: u8,
-        b1: f32,
-        b2: f32,
-    },
+    /// A triangle: where the tracer that found it stores it (see [`Tracer::triangle_id`]
+    /// for its index in [`SceneGeometry::triangles`]), and the barycentric weights of its
+    /// second and third vertices.
+    Triangle { slot: u32, b1: f32, b2: f32 },
+}
+
+/// Answers ray queries against a built scene: raybatch's own [`Scene`], or (with the
+/// `embree` feature) the Embree reference. Integrators and the render loop are generic
+/// over it, so the choice is made once per job, not per ray.
+pub trait Tracer: Sync {
+    /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives, if any.
+    fn closest_hit(&self, ray: &Ray) -> Option<Hit>;
+
+    /// Whether anything is hit with `ray.tmin < t < ray.tmax`.
+    fn any_hit(&self, ray: &Ray) -> bool;
+
+    /// The unit geometric normal at a hit this tracer returned, not flipped toward the
+    /// ray: a sphere's `(p − c)/r`, a plane's normal, a triangle's
+    /// `normalize(cross(v1 − v0, v2 − v0))`.
+    fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3;
+
+    /// The index in [`SceneGeometry::triangles`] of the triangle stored at `slot`.
+    fn triangle_id(&self, slot: u32) -> u32;
+
+    /// Primitive counts and memory of what was built.
+    fn counts(&self) -> SceneCounts;
 }
 
 /// Sizes of what was built.
@@ -240,10 +259,6 @@ impl Scene {
         }
     }
 
-    pub fn counts(&self) -> SceneCounts {
-        self.counts
-    }
-
     /// The triangle tree (for inspection and tests).
     pub fn triangle_bvh(&self) -> &Bvh<f32> {
         &self.triangle_bvh
@@ -297,8 +312,7 @@ impl Scene {
                 best = Some(Hit {
                     t: f64::from(hit.t),
                     primitive: Primitive::Triangle {
-                        block,
-                        lane: lane as u8,
+                        slot: block * BLOCK as u32 + lane as u32,
                         b1: hit.b1,
                         b2: hit.b2,
                     },
@@ -347,17 +361,41 @@ impl Scene {
         match hit.primitive {
             Primitive::Plane(i) => self.planes[i as usize].normal,
             Primitive::Sphere(id) => self.spheres_by_id[id as usize].normal(ray.at(hit.t)),
-            Primitive::Triangle { block, lane, .. } => {
-                let b = &self.blocks[block as usize];
-                let lane = lane as usize;
+            Primitive::Triangle { slot, .. } => {
+                let (b, lane) = self.slot(slot);
                 triangle::geometric_normal(b.vertex(lane, 0), b.vertex(lane, 1), b.vertex(lane, 2))
             }
         }
     }
 
-    /// The input index (into [`SceneGeometry::triangles`]) of a hit triangle.
-    pub fn triangle_id(&self, block: u32, lane: u8) -> u32 {
-        self.blocks[block as usize].ids[lane as usize]
+    fn slot(&self, slot: u32) -> (&TriangleBlock, usize) {
+        let block = &self.blocks[slot as usize / BLOCK];
+        (block, slot as usize % BLOCK)
+    }
+}
+
+impl Tracer for Scene {
+    #[inline]
+    fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        Scene::closest_hit(self, ray)
+    }
+
+    #[inline]
+    fn any_hit(&self, ray: &Ray) -> bool {
+        Scene::any_hit(self, ray)
+    }
+
+    fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
+        Scene::normal(self, ray, hit)
+    }
+
+    fn triangle_id(&self, slot: u32) -> u32 {
+        let (block, lane) = self.slot(slot);
+        block.ids[lane]
+    }
+
+    fn counts(&self) -> SceneCounts {
+        self.counts
     }
 }
 
