@@ -111,6 +111,9 @@ pub enum Error {
         #[source]
         source: io::Error,
     },
+    /// The tracer could not be built (Embree refused the scene, or is not in this build).
+    #[error("{0}")]
+    Backend(String),
     /// Two jobs of one batch would write the same output file.
     #[error("output {path} is also written by {other}; refusing to overwrite it")]
     OutputClash { path: PathBuf, other: PathBuf },

@@ -115,6 +115,192 @@ impl Image {
     }
 }
 
+/// An image read back from a PPM (`P3`/`P6`, any maxval) or PFM (`PF`/`Pf`) file, in the
+/// file's own units (PPM: `0..=maxval`; PFM: floats), rows from the top.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decoded {
+    pub width: u32,
+    pub height: u32,
+    /// `Some(maxval)` for PPM, `None` for PFM.
+    pub maxval: Option<u32>,
+    pub pixels: Vec<[f64; 3]>,
+}
+
+/// Why an image file could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum DecodeError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: std::path::PathBuf,
+        #[source]
+        source: io::Error,
+    },
+    #[error("{path}: {message}")]
+    Format {
+        path: std::path::PathBuf,
+        message: String,
+    },
+}
+
+/// Reads a PPM or PFM file.
+pub fn read(path: &Path) -> Result<Decoded, DecodeError> {
+    let bytes = std::fs::read(path).map_err(|source| DecodeError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    decode(&bytes).map_err(|message| DecodeError::Format {
+        path: path.to_path_buf(),
+        message,
+    })
+}
+
+/// Decodes PPM or PFM bytes.
+pub fn decode(bytes: &[u8]) -> Result<Decoded, String> {
+    let mut header = Header { bytes, at: 0 };
+    let magic = header.token()?;
+    let width: u32 = header.number("width")?;
+    let height: u32 = header.number("height")?;
+    if width == 0 || height == 0 {
+        return Err(format!("empty image ({width} x {height})"));
+    }
+    let n = width as usize * height as usize;
+    match magic.as_str() {
+        "P3" | "P6" => {
+            let maxval: u32 = header.number("maxval")?;
+            if !(1..=65535).contains(&maxval) {
+                return Err(format!("maxval {maxval} is outside 1..=65535"));
+            }
+            let mut pixels = Vec::with_capacity(n);
+            if magic == "P3" {
+                for _ in 0..n {
+                    let mut p = [0.0; 3];
+                    for c in &mut p {
+                        let v: u32 = header.number("pixel value")?;
+                        if v > maxval {
+                            return Err(format!("pixel value {v} exceeds maxval {maxval}"));
+                        }
+                        *c = f64::from(v);
+                    }
+                    pixels.push(p);
+                }
+            } else {
+                let data = header.data()?;
+                let size = if maxval < 256 { 1 } else { 2 };
+                if data.len() < n * 3 * size {
+                    return Err(format!(
+                        "{} bytes of pixel data, {} expected",
+                        data.len(),
+                        n * 3 * size
+                    ));
+                }
+                let sample = |i: usize| match size {
+                    1 => f64::from(data[i]),
+                    _ => f64::from(u16::from_be_bytes([data[2 * i], data[2 * i + 1]])),
+                };
+                pixels
+                    .extend((0..n).map(|p| [sample(3 * p), sample(3 * p + 1), sample(3 * p + 2)]));
+            }
+            Ok(Decoded {
+                width,
+                height,
+                maxval: Some(maxval),
+                pixels,
+            })
+        }
+        "PF" | "Pf" => {
+            let scale: f64 = header
+                .token()?
+                .parse()
+                .map_err(|_| "the PFM scale is not a number".to_string())?;
+            let data = header.data()?;
+            let channels = if magic == "PF" { 3 } else { 1 };
+            if data.len() < n * channels * 4 {
+                return Err(format!(
+                    "{} bytes of pixel data, {} expected",
+                    data.len(),
+                    n * channels * 4
+                ));
+            }
+            let float = |i: usize| {
+                let b = [
+                    data[4 * i],
+                    data[4 * i + 1],
+                    data[4 * i + 2],
+                    data[4 * i + 3],
+                ];
+                f64::from(if scale < 0.0 {
+                    f32::from_le_bytes(b)
+                } else {
+                    f32::from_be_bytes(b)
+                })
+            };
+            let (w, h) = (width as usize, height as usize);
+            let mut pixels = vec![[0.0; 3]; n];
+            for row in 0..h {
+                // The file's first row is the image's bottom row.
+                let y = h - 1 - row;
+                for x in 0..w {
+                    let i = (row * w + x) * channels;
+                    pixels[y * w + x] = if channels == 3 {
+                        [float(i), float(i + 1), float(i + 2)]
+                    } else {
+                        [float(i); 3]
+                    };
+                }
+            }
+            Ok(Decoded {
+                width,
+                height,
+                maxval: None,
+                pixels,
+            })
+        }
+        other => Err(format!("not a PPM or PFM file (magic {other:?})")),
+    }
+}
+
+/// A cursor over a Netpbm-style header: whitespace-separated tokens, `#` comments.
+struct Header<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl Header<'_> {
+    fn token(&mut self) -> Result<String, String> {
+        loop {
+            while self.at < self.bytes.len() && self.bytes[self.at].is_ascii_whitespace() {
+                self.at += 1;
+            }
+            if self.bytes.get(self.at) != Some(&b'#') {
+                break;
+            }
+            while self.at < self.bytes.len() && self.bytes[self.at] != b'\n' {
+                self.at += 1;
+            }
+        }
+        let start = self.at;
+        while self.at < self.bytes.len() && !self.bytes[self.at].is_ascii_whitespace() {
+            self.at += 1;
+        }
+        if start == self.at {
+            return Err("the file ends early".to_string());
+        }
+        Ok(String::from_utf8_lossy(&self.bytes[start..self.at]).into_owned())
+    }
+
+    fn number<T: std::str::FromStr>(&mut self, what: &str) -> Result<T, String> {
+        let token = self.token()?;
+        token.parse().map_err(|_| format!("bad {what} {token:?}"))
+    }
+
+    /// The binary data after the single whitespace byte that ends the header.
+    fn data(&self) -> Result<&[u8], String> {
+        self.bytes
+            .get(self.at + 1..)
+            .ok_or_else(|| "the file ends early".to_string())
+    }
+}
+
 /// Rows `y0..y0 + rows()` of an [`Image`].
 #[derive(Debug)]
 pub struct Band<'a> {
@@ -245,6 +431,47 @@ mod tests {
         assert_eq!(encode(c, Encoding::Srgb), 1.055 * c.powf(1.0 / 2.4) - 0.055);
         assert!((encode(1.0, Encoding::Srgb) - 1.0).abs() < 1e-12);
         assert_eq!(encode(0.3, Encoding::Linear), 0.3);
+    }
+
+    #[test]
+    fn what_is_written_reads_back() {
+        for format in [
+            OutputFormat::Ppm(PpmStyle::Plain),
+            OutputFormat::Ppm(PpmStyle::Binary),
+            OutputFormat::Pfm,
+        ] {
+            let mut image = Image::new(3, 2, format, Encoding::Linear);
+            image.set(2, 0, [0.5, 0.25, 1.0]);
+            image.set(0, 1, [0.125, 0.0, 0.75]);
+            let decoded = decode(&image.to_bytes()).unwrap();
+            assert_eq!((decoded.width, decoded.height), (3, 2));
+            let expected = |v: [f64; 3]| match format {
+                OutputFormat::Pfm => v,
+                _ => v.map(|c| f64::from(quantize(c))),
+            };
+            assert_eq!(decoded.pixels[2], expected([0.5, 0.25, 1.0]), "{format:?}");
+            assert_eq!(
+                decoded.pixels[3],
+                expected([0.125, 0.0, 0.75]),
+                "{format:?}"
+            );
+            assert_eq!(decoded.pixels[0], [0.0; 3]);
+        }
+    }
+
+    #[test]
+    fn bad_images_are_refused_with_a_reason() {
+        for (bytes, fragment) in [
+            (&b"P5\n1 1\n255\n\0"[..], "not a PPM"),
+            (b"P3\n2 1\n255\n1 2 3\n", "ends early"),
+            (b"P3\n1 1\n255\n1 2 300\n", "exceeds maxval"),
+            (b"P6\n2 2\n255\n\0\0\0", "bytes of pixel data"),
+            (b"PF\n1 1\nabc\n", "scale"),
+            (b"P3\nx 1\n255\n", "bad width"),
+        ] {
+            let error = decode(bytes).unwrap_err();
+            assert!(error.contains(fragment), "{error}");
+        }
     }
 
     #[test]

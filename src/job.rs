@@ -22,6 +22,35 @@ pub struct JobOptions {
     /// Write every output as `DIR/<file name of its output>` instead of where the manifest
     /// says.
     pub out_dir: Option<PathBuf>,
+    /// Which tracer answers the rays.
+    pub backend: Backend,
+}
+
+/// The tracer behind a job's rays.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Backend {
+    /// raybatch's own BVH and intersection tests.
+    #[default]
+    Raybatch,
+    /// Embree 3 in robust mode, the reference (needs the `embree` cargo feature).
+    Embree,
+}
+
+impl Backend {
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Raybatch => "raybatch",
+            Backend::Embree => "embree",
+        }
+    }
+
+    /// Whether this build can use the backend.
+    pub fn available(self) -> bool {
+        match self {
+            Backend::Raybatch => true,
+            Backend::Embree => cfg!(feature = "embree"),
+        }
+    }
 }
 
 /// What happened to one job. Figures that were not reached are `None`.
@@ -36,6 +65,7 @@ pub struct JobReport {
     pub height: Option<u32>,
     pub spp: Option<u32>,
     pub integrator: Option<&'static str>,
+    pub backend: &'static str,
     pub triangles: Option<usize>,
     pub spheres: Option<usize>,
     pub planes: Option<usize>,
@@ -57,6 +87,7 @@ impl JobReport {
             height: None,
             spp: None,
             integrator: None,
+            backend: Backend::Raybatch.name(),
             triangles: None,
             spheres: None,
             planes: None,
@@ -84,6 +115,7 @@ impl JobReport {
             "ok": self.ok(),
             "error": self.error.as_ref().map(|e| e.error.to_string()),
             "integrator": self.integrator,
+            "backend": self.backend,
             "triangles": self.triangles,
             "spheres": self.spheres,
             "planes": self.planes,
@@ -125,6 +157,7 @@ impl Batch {
     /// Renders the manifest at `path`. `progress` receives finished pixel counts.
     pub fn run(&mut self, path: &Path, progress: &(dyn Fn(u64) + Sync)) -> JobReport {
         let mut report = JobReport::new(path);
+        report.backend = self.options.backend.name();
         if let Err(error) = self.run_inner(path, &mut report, progress) {
             report.error = Some(JobError {
                 manifest: path.to_path_buf(),
@@ -161,26 +194,34 @@ impl Batch {
         let geometry = SceneGeometry::load(&manifest, &mut self.meshes)?;
         report.warnings = geometry.warnings.clone();
         report.load_s = start.elapsed().as_secs_f64();
-
-        let start = Instant::now();
-        let scene = Scene::build(geometry);
-        let counts = scene.counts();
-        report.triangles = Some(counts.triangles);
-        report.spheres = Some(counts.spheres);
-        report.planes = Some(counts.planes);
-        report.build_s = start.elapsed().as_secs_f64();
-
-        let start = Instant::now();
-        let image = render::render(&scene, &manifest, progress)?;
-        report.render_s = start.elapsed().as_secs_f64();
-        drop(scene);
-
-        let start = Instant::now();
-        image.write(&output).map_err(|source| Error::Output {
-            path: output.clone(),
-            source,
-        })?;
-        report.write_s = start.elapsed().as_secs_f64();
+        match self.options.backend {
+            Backend::Raybatch => finish(
+                |g| Ok(Scene::build(g)),
+                geometry,
+                &manifest,
+                &output,
+                report,
+                progress,
+            )?,
+            Backend::Embree => {
+                #[cfg(feature = "embree")]
+                finish(
+                    |g| {
+                        crate::embree::EmbreeScene::build(g)
+                            .map_err(|e| Error::Backend(e.to_string()))
+                    },
+                    geometry,
+                    &manifest,
+                    &output,
+                    report,
+                    progress,
+                )?;
+                #[cfg(not(feature = "embree"))]
+                return Err(Error::Backend(
+                    "this build has no Embree backend (build with `--features embree`)".to_string(),
+                ));
+            }
+        }
         self.written.insert(key, path.to_path_buf());
         Ok(())
     }
@@ -193,6 +234,37 @@ impl Batch {
             None => manifest.output.clone(),
         }
     }
+}
+
+/// Builds the tracer, renders and writes the image, recording the times in `report`.
+fn finish<T: Tracer>(
+    build: impl FnOnce(SceneGeometry) -> Result<T, Error>,
+    geometry: SceneGeometry,
+    manifest: &Manifest,
+    output: &Path,
+    report: &mut JobReport,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<(), Error> {
+    let start = Instant::now();
+    let scene = build(geometry)?;
+    let counts = scene.counts();
+    report.triangles = Some(counts.triangles);
+    report.spheres = Some(counts.spheres);
+    report.planes = Some(counts.planes);
+    report.build_s = start.elapsed().as_secs_f64();
+
+    let start = Instant::now();
+    let image = render::render(&scene, manifest, progress)?;
+    report.render_s = start.elapsed().as_secs_f64();
+    drop(scene);
+
+    let start = Instant::now();
+    image.write(output).map_err(|source| Error::Output {
+        path: output.to_path_buf(),
+        source,
+    })?;
+    report.write_s = start.elapsed().as_secs_f64();
+    Ok(())
 }
 
 /// A path that names the same file however it was spelled (`a/../b`, `./b`, `b`).

@@ -24,6 +24,9 @@
 
 pub mod bvh;
 pub mod camera;
+pub mod compare;
+#[cfg(feature = "embree")]
+pub mod embree;
 pub mod error;
 pub mod gltf_mesh;
 pub mod image;
@@ -41,6 +44,8 @@ pub mod scene;
 pub mod sphere;
 pub mod transform;
 pub mod triangle;
+#[cfg(feature = "embree")]
+pub mod verify;
 
 pub use error::{Error, JobError, ManifestError, MeshError};
 pub use manifest::Manifest;

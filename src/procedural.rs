@@ -272,6 +272,39 @@ pub fn cube() -> Geometry {
     }
 }
 
+/// A `cells × cells` grid of triangle pairs on the plane `z = 1` whose vertices sit
+/// exactly where the pixel-centre rays of the default camera cross it, for a square image
+/// of `cells` pixels (a power of two keeps the coordinates exact), plus one ring outside.
+pub fn pixel_grid(cells: u32) -> Geometry {
+    let n = f64::from(cells);
+    let mut positions = Vec::new();
+    for j in 0..=cells + 1 {
+        for i in 0..=cells + 1 {
+            let u = (2.0 * f64::from(i) - 1.0 - n) / n;
+            let v = (n - 2.0 * f64::from(j) + 1.0) / n;
+            positions.push([u as f32, v as f32, 1.0]);
+        }
+    }
+    let index = |i: u32, j: u32| j * (cells + 2) + i;
+    let mut triangles = Vec::new();
+    for j in 0..=cells {
+        for i in 0..=cells {
+            let (a, b, c, d) = (
+                index(i, j),
+                index(i + 1, j),
+                index(i + 1, j + 1),
+                index(i, j + 1),
+            );
+            triangles.push([a, b, c]);
+            triangles.push([a, c, d]);
+        }
+    }
+    Geometry {
+        positions,
+        triangles,
+    }
+}
+
 /// The files of `models/`, by name: what `cargo run --example make_models` writes.
 pub fn model_files() -> Vec<(&'static str, Vec<u8>)> {
     let icosphere = to_obj(
@@ -285,7 +318,17 @@ pub fn model_files() -> Vec<(&'static str, Vec<u8>)> {
     (["icosphere.obj", "torus.obj"].into_iter())
         .zip([icosphere, torus])
         .map(|(name, text)| (name, text.into_bytes()))
-        .chain([("stack.gltf", stack_gltf().into_bytes())])
+        .chain([
+            ("stack.gltf", stack_gltf().into_bytes()),
+            (
+                "pixel-grid.obj",
+                to_obj(
+                    &pixel_grid(64),
+                    "Triangles on z = 1 with a vertex on every pixel-centre ray of a 64 x 64 default camera.\nMade by raybatch::procedural; regenerate with `cargo run --example make_models`.",
+                )
+                .into_bytes(),
+            ),
+        ])
         .collect()
 }
 

@@ -34,6 +34,21 @@ impl View {
             tmax: manifest.tmax,
         }
     }
+
+    /// The camera ray of sample `s` of pixel `(x, y)`, with the manifest's `tmin`/`tmax`.
+    #[inline]
+    pub fn ray(&self, x: u32, y: u32, s: u32) -> crate::Ray {
+        let (sx, sy) = self.sampler.pixel_offset(x, y, s);
+        let lens = if self.camera.has_lens() {
+            self.sampler.lens(x, y, s)
+        } else {
+            (0.5, 0.5)
+        };
+        let mut ray = self.camera.ray(x, y, sx, sy, lens);
+        ray.tmin = self.tmin;
+        ray.tmax = self.tmax;
+        ray
+    }
 }
 
 /// Refuses manifests whose integrator this version cannot render yet.
@@ -111,16 +126,7 @@ pub fn render_with<T: Tracer, I: Integrator>(
                 for x in x0..(x0 + TILE).min(width) {
                     let mut sum = [0.0f64; 3];
                     for s in 0..spp {
-                        let (sx, sy) = view.sampler.pixel_offset(x, y, s);
-                        let lens = if view.camera.has_lens() {
-                            view.sampler.lens(x, y, s)
-                        } else {
-                            (0.5, 0.5)
-                        };
-                        let mut ray = view.camera.ray(x, y, sx, sy, lens);
-                        ray.tmin = view.tmin;
-                        ray.tmax = view.tmax;
-                        let value = integrator.value(scene, &ray);
+                        let value = integrator.value(scene, &view.ray(x, y, s));
                         for c in 0..3 {
                             sum[c] += value[c];
                         }

@@ -402,6 +402,11 @@ fn exit_statuses_are_0_1_and_2() {
         vec!["render", "good.json", "--frobnicate"],
         vec!["paint", "good.json"],
         vec!["render", "good.json", "--stats", "empty"],
+        vec!["render", "good.json", "--backend", "ospray"],
+        #[cfg(not(feature = "embree"))]
+        vec!["render", "good.json", "--backend", "embree"],
+        #[cfg(not(feature = "embree"))]
+        vec!["verify", "good.json"],
     ] {
         let run = dir.raybatch(&args);
         assert_eq!(run.status, 2, "{args:?}: {}", run.stderr);

@@ -9,6 +9,9 @@
 //! - `geometry`: hit rules for spheres, planes and triangles; transforms.
 //! - `integrators`: what `hit`, `depth` and `normal` write.
 //! - `output`: file formats, encodings, output paths, `--out`, `--stats`.
+//! - `compare`: `raybatch compare` figures, limits and refusals.
+//! - `embree` (feature `embree`): every shipped and stress scene verified against Embree,
+//!   `render --backend embree`, watertightness cross-checked.
 //! - `meshes`: OBJ and glTF fixtures written by the tests.
 //! - `errors`: bad manifests and mesh files refused with a place and cause, no partial
 //!   files, batches going on, exit statuses.
@@ -21,6 +24,9 @@ mod util;
 
 mod camera;
 mod canonical;
+mod compare;
+#[cfg(feature = "embree")]
+mod embree;
 mod errors;
 mod geometry;
 mod integrators;

@@ -3,7 +3,7 @@
 use std::num::NonZeroUsize;
 use std::path::PathBuf;
 
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -21,6 +21,14 @@ pub enum Command {
     /// Render manifests: each PATH is a manifest, or a folder whose *.json files are
     /// rendered in sorted order. A failed job is reported and the others still run.
     Render(RenderArgs),
+    /// Compare image A with the reference B (PPM or PFM, same size): differing pixels, max
+    /// abs difference, RMSE, PSNR, and for depth renders the hit mask and relative depth
+    /// error. Exits 1 when a limit is exceeded.
+    Compare(CompareArgs),
+    /// Trace every camera ray of each manifest with raybatch and with Embree (robust) and
+    /// compare the closest hits: hit agreement, depth error, trace times. Needs a build
+    /// with `--features embree`. Exits 1 when a limit is exceeded or a job fails.
+    Verify(VerifyArgs),
 }
 
 #[derive(Debug, Args)]
@@ -38,7 +46,87 @@ pub struct RenderArgs {
     /// Append one JSON object per job to FILE (timings, counts, errors).
     #[arg(long, value_name = "FILE")]
     pub stats: Option<PathBuf>,
+    /// The tracer: raybatch's own, or the Embree reference (`--features embree` builds).
+    #[arg(long, value_enum, default_value_t = BackendArg::Raybatch)]
+    pub backend: BackendArg,
     /// Print only errors and warnings.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BackendArg {
+    Raybatch,
+    Embree,
+}
+
+/// Limits shared by `compare` and `verify`; a figure past its limit fails the command.
+#[derive(Debug, Args)]
+pub struct DepthLimits {
+    /// Largest fraction of samples where exactly one side hits.
+    #[arg(long, value_name = "F")]
+    pub max_mask_fraction: Option<f64>,
+    /// Largest 99th-percentile relative depth error.
+    #[arg(long, value_name = "R")]
+    pub max_depth_p99: Option<f64>,
+    /// Largest 99.9th-percentile relative depth error.
+    #[arg(long, value_name = "R")]
+    pub max_depth_p999: Option<f64>,
+    /// Largest relative depth error.
+    #[arg(long, value_name = "R")]
+    pub max_depth_error: Option<f64>,
+}
+
+#[derive(Debug, Args)]
+pub struct CompareArgs {
+    /// The image under test.
+    pub a: PathBuf,
+    /// The reference image.
+    pub b: PathBuf,
+    /// Also compare as depth renders (a pixel equal to the background is a miss). Implied
+    /// when both images are PFM with equal channels everywhere.
+    #[arg(long)]
+    pub depth: bool,
+    /// The background of depth renders, one value or three (default 0).
+    #[arg(long, value_name = "V", num_args = 1..=3, value_delimiter = ',', allow_negative_numbers = true)]
+    pub background: Vec<f64>,
+    /// Largest number of differing pixels.
+    #[arg(long, value_name = "N")]
+    pub max_differing: Option<u64>,
+    /// Largest absolute difference of any channel (in the images' units).
+    #[arg(long, value_name = "X")]
+    pub max_abs: Option<f64>,
+    /// Smallest PSNR, in dB.
+    #[arg(long, value_name = "DB")]
+    pub min_psnr: Option<f64>,
+    #[command(flatten)]
+    pub depth_limits: DepthLimits,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct VerifyArgs {
+    /// Manifests or folders of manifests.
+    #[arg(required = true, value_name = "PATH")]
+    pub paths: Vec<PathBuf>,
+    /// Worker threads for both tracers (default: all cores).
+    #[arg(long, value_name = "N")]
+    pub threads: Option<NonZeroUsize>,
+    /// Largest fraction of rays where exactly one tracer hits.
+    #[arg(long, value_name = "F", default_value_t = 1e-4)]
+    pub max_mask_fraction: f64,
+    /// Largest 99.9th-percentile relative depth error.
+    #[arg(long, value_name = "R", default_value_t = 1e-5)]
+    pub max_depth_p999: f64,
+    /// Largest 99th-percentile relative depth error.
+    #[arg(long, value_name = "R")]
+    pub max_depth_p99: Option<f64>,
+    /// Largest relative depth error.
+    #[arg(long, value_name = "R")]
+    pub max_depth_error: Option<f64>,
+    /// Print one JSON object per manifest instead of text.
+    #[arg(long)]
+    pub json: bool,
 }

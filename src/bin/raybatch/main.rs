@@ -1,16 +1,19 @@
-//! The `raybatch` command: a thin layer over the library's batch runner that parses the
-//! command line, reports each job, and sets the exit status at the end.
+//! The `raybatch` command: a thin layer over the library that parses the command line,
+//! reports each job, and sets the exit status at the end (0 all good, 1 a job failed or a
+//! limit was exceeded, 2 the command itself could not run as given).
 
 mod args;
 
 use std::io::Write;
+use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use clap::Parser;
 
-use args::{Cli, Command, RenderArgs};
-use raybatch::job::{Batch, JobOptions, manifests_in};
+use args::{BackendArg, Cli, Command, CompareArgs, RenderArgs, VerifyArgs};
+use raybatch::compare::{Limits, compare_images};
+use raybatch::job::{Backend, Batch, JobOptions, manifests_in};
 
 /// Exit status for a bad command line (clap uses the same for its own errors).
 const USAGE: u8 = 2;
@@ -19,6 +22,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Render(args) => render(args),
+        Command::Compare(args) => compare(args),
+        Command::Verify(args) => verify(args),
     };
     match result {
         Ok(code) => code,
@@ -29,14 +34,18 @@ fn main() -> ExitCode {
     }
 }
 
-/// `raybatch render`: every job runs even when some fail; 0 when all succeeded, else 1.
-/// Errors returned here stop the command before any job runs (exit status 2).
+/// `raybatch render`: every job runs even when some fail.
 fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
-    let mut pool = rayon::ThreadPoolBuilder::new();
-    if let Some(threads) = args.threads {
-        pool = pool.num_threads(threads.get());
+    let backend = match args.backend {
+        BackendArg::Raybatch => Backend::Raybatch,
+        BackendArg::Embree => Backend::Embree,
+    };
+    if !backend.available() {
+        bail!(
+            "this build has no Embree backend; rebuild with `cargo build --release --features embree`"
+        );
     }
-    let pool = pool.build().context("cannot start the worker threads")?;
+    let pool = thread_pool(args.threads)?;
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create the output folder {}", dir.display()))?;
@@ -49,38 +58,11 @@ fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
         None => None,
     };
 
-    let mut failures = 0usize;
-    let mut jobs = Vec::new();
-    for path in &args.paths {
-        match manifests_in(path) {
-            Ok(found) if found.is_empty() => {
-                eprintln!(
-                    "raybatch: {}: no *.json manifests in this folder",
-                    path.display()
-                );
-                failures += 1;
-            }
-            Ok(found) => {
-                for manifest in found {
-                    if !jobs.contains(&manifest) {
-                        jobs.push(manifest);
-                    }
-                }
-            }
-            Err(error) => {
-                eprintln!(
-                    "raybatch: {}: {}",
-                    path.display(),
-                    one_line(&error.to_string())
-                );
-                failures += 1;
-            }
-        }
-    }
-
+    let (jobs, mut failures) = collect_manifests(&args.paths);
     let bar = progress_bar(args.quiet);
     let mut batch = Batch::new(JobOptions {
         out_dir: args.out.clone(),
+        backend,
     });
     let job_count = jobs.len();
     for (i, manifest) in jobs.iter().enumerate() {
@@ -129,11 +111,167 @@ fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
         }
     }
     bar.finish_and_clear();
-    Ok(if failures == 0 {
+    Ok(status(failures))
+}
+
+/// `raybatch compare A B`.
+fn compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
+    let a = raybatch::image::read(&args.a)?;
+    let b = raybatch::image::read(&args.b)?;
+    let background = match args.background.as_slice() {
+        [] => [0.0; 3],
+        [v] => [*v; 3],
+        [r, g, b] => [*r, *g, *b],
+        _ => bail!("--background takes one value or three"),
+    };
+    let gray_pfm = |d: &raybatch::image::Decoded| {
+        d.maxval.is_none() && d.pixels.iter().all(|p| p[0] == p[1] && p[1] == p[2])
+    };
+    let depth = (args.depth || (gray_pfm(&a) && gray_pfm(&b))).then_some(background);
+    let comparison = compare_images(&a, &b, depth)
+        .map_err(|e| anyhow::anyhow!("{} and {}: {e}", args.a.display(), args.b.display()))?;
+    let limits = Limits {
+        max_differing: args.max_differing,
+        max_abs: args.max_abs,
+        min_psnr: args.min_psnr,
+        max_mask_fraction: args.depth_limits.max_mask_fraction,
+        max_depth_p99: args.depth_limits.max_depth_p99,
+        max_depth_p999: args.depth_limits.max_depth_p999,
+        max_depth_error: args.depth_limits.max_depth_error,
+    };
+    let failures = limits.check_image(&comparison);
+    if args.json {
+        let mut line = comparison.to_json();
+        line["a"] = args.a.display().to_string().into();
+        line["b"] = args.b.display().to_string().into();
+        line["ok"] = failures.is_empty().into();
+        line["failures"] = failures.clone().into();
+        println!("{line}");
+    } else {
+        let c = &comparison;
+        let pixels = f64::from(c.width) * f64::from(c.height);
+        println!(
+            "{} vs {} ({} x {}): {} differing pixels ({:.4}%), max abs difference {}, RMSE {:.6e}, PSNR {}",
+            args.a.display(),
+            args.b.display(),
+            c.width,
+            c.height,
+            c.differing,
+            100.0 * c.differing as f64 / pixels,
+            c.max_abs,
+            c.rmse,
+            if c.psnr.is_finite() {
+                format!("{:.2} dB", c.psnr)
+            } else {
+                "inf (identical)".to_string()
+            },
+        );
+        if let Some(depth) = &c.depth {
+            println!("depth: {}", depth.summary());
+        }
+    }
+    for failure in &failures {
+        eprintln!("raybatch: {}: limit exceeded: {failure}", args.a.display());
+    }
+    Ok(status(failures.len()))
+}
+
+/// `raybatch verify`.
+#[cfg(feature = "embree")]
+fn verify(args: VerifyArgs) -> anyhow::Result<ExitCode> {
+    let pool = thread_pool(args.threads)?;
+    let limits = Limits {
+        max_mask_fraction: Some(args.max_mask_fraction),
+        max_depth_p99: args.max_depth_p99,
+        max_depth_p999: Some(args.max_depth_p999),
+        max_depth_error: args.max_depth_error,
+        ..Limits::default()
+    };
+    let (jobs, mut failures) = collect_manifests(&args.paths);
+    let mut meshes = raybatch::mesh::MeshCache::new();
+    for manifest in &jobs {
+        match pool.install(|| raybatch::verify::verify(manifest, &mut meshes)) {
+            Err(error) => {
+                failures += 1;
+                eprintln!("raybatch: {}", one_line(&error.to_string()));
+            }
+            Ok(v) => {
+                let exceeded = limits.check_depth(&v.depth);
+                if args.json {
+                    let mut line = v.to_json();
+                    line["ok"] = exceeded.is_empty().into();
+                    line["failures"] = exceeded.clone().into();
+                    println!("{line}");
+                } else {
+                    println!("{}", v.summary());
+                }
+                for failure in &exceeded {
+                    eprintln!(
+                        "raybatch: {}: limit exceeded: {failure}",
+                        manifest.display()
+                    );
+                }
+                failures += usize::from(!exceeded.is_empty());
+            }
+        }
+    }
+    Ok(status(failures))
+}
+
+#[cfg(not(feature = "embree"))]
+fn verify(_: VerifyArgs) -> anyhow::Result<ExitCode> {
+    bail!(
+        "this build has no Embree backend; rebuild with `cargo build --release --features embree`"
+    )
+}
+
+/// The manifests named by the command line (folders expanded, duplicates dropped), and how
+/// many paths could not be read (each reported on stderr).
+fn collect_manifests(paths: &[PathBuf]) -> (Vec<PathBuf>, usize) {
+    let (mut jobs, mut failures) = (Vec::new(), 0);
+    for path in paths {
+        match manifests_in(path) {
+            Ok(found) if found.is_empty() => {
+                eprintln!(
+                    "raybatch: {}: no *.json manifests in this folder",
+                    path.display()
+                );
+                failures += 1;
+            }
+            Ok(found) => {
+                for manifest in found {
+                    if !jobs.contains(&manifest) {
+                        jobs.push(manifest);
+                    }
+                }
+            }
+            Err(error) => {
+                eprintln!(
+                    "raybatch: {}: {}",
+                    path.display(),
+                    one_line(&error.to_string())
+                );
+                failures += 1;
+            }
+        }
+    }
+    (jobs, failures)
+}
+
+fn thread_pool(threads: Option<std::num::NonZeroUsize>) -> anyhow::Result<rayon::ThreadPool> {
+    let mut pool = rayon::ThreadPoolBuilder::new();
+    if let Some(threads) = threads {
+        pool = pool.num_threads(threads.get());
+    }
+    pool.build().context("cannot start the worker threads")
+}
+
+fn status(failures: usize) -> ExitCode {
+    if failures == 0 {
         ExitCode::SUCCESS
     } else {
         ExitCode::from(1)
-    })
+    }
 }
 
 /// A progress bar on stderr, drawn only when stderr is a terminal.

@@ -1,0 +1,210 @@
+//! The Embree reference tracer (cargo feature `embree`): triangles and spheres are traced by
+//! Embree 3 (`rtcIntersect1`/`rtcOccluded1`) in robust mode, `RTC_SCENE_FLAG_ROBUST`, so
+//! rays cannot slip through shared edges. It shares no intersection code with raybatch:
+//! triangles are Embree's triangle geometry, spheres its `SPHERE_POINT` geometry (float32
+//! centre and radius, as Embree stores them). Planes, which Embree lacks, stay analytic.
+//!
+//! Rays are the same float64 camera rays rounded to float32 as raybatch rounds them, and
+//! the strict interval `tmin < t < tmax` becomes Embree's inclusive `[tnear, tfar]` one
+//! float32 step inside it.
+
+use embree3::{BufferUsage, Device, Format, GeometryKind, IntersectContext, RayHit, SceneFlags};
+use glam::DVec3;
+
+use crate::bvh::{f32_at_least, f32_at_most};
+use crate::plane::Plane;
+use crate::ray::Ray;
+use crate::scene::{Hit, Primitive, SceneCounts, SceneGeometry, Tracer};
+use crate::sphere::Sphere;
+use crate::triangle;
+
+/// Embree's "no geometry" id.
+const INVALID: u32 = u32::MAX;
+
+/// A scene built by Embree.
+pub struct EmbreeScene {
+    scene: embree3::Scene<'static>,
+    _device: Device,
+    triangle_geometry: Option<u32>,
+    sphere_geometry: Option<u32>,
+    /// Kept for normals (computed from the stored vertices, as raybatch does).
+    triangles: Vec<[[f32; 3]; 3]>,
+    spheres: Vec<Sphere>,
+    planes: Vec<Plane>,
+    counts: SceneCounts,
+}
+
+/// Embree refused to build the scene.
+#[derive(Debug, thiserror::Error)]
+#[error("Embree: {0}")]
+pub struct EmbreeError(String);
+
+impl EmbreeScene {
+    pub fn build(geometry: SceneGeometry) -> Result<EmbreeScene, EmbreeError> {
+        let fail = |what: &str, e: embree3::Error| EmbreeError(format!("{what}: {e:?}"));
+        let device = Device::new().map_err(|e| fail("cannot create a device", e))?;
+        let mut scene = device
+            .create_scene()
+            .map_err(|e| fail("cannot create a scene", e))?;
+        scene.set_flags(SceneFlags::ROBUST);
+        let SceneGeometry {
+            triangles,
+            spheres,
+            planes,
+            ..
+        } = geometry;
+
+        let mut triangle_geometry = None;
+        if !triangles.is_empty() {
+            let n = triangles.len();
+            let mut mesh = device
+                .create_geometry(GeometryKind::TRIANGLE)
+                .map_err(|e| fail("cannot create a triangle geometry", e))?;
+            mesh.set_new_buffer::<[f32; 3]>(BufferUsage::VERTEX, 0, Format::FLOAT3, 12, 3 * n)
+                .map_err(|e| fail("vertex buffer", e))?
+                .copy_from_slice(triangles.as_flattened());
+            let indices: Vec<[u32; 3]> = (0..n as u32)
+                .map(|i| [3 * i, 3 * i + 1, 3 * i + 2])
+                .collect();
+            mesh.set_new_buffer::<[u32; 3]>(BufferUsage::INDEX, 0, Format::UINT3, 12, n)
+                .map_err(|e| fail("index buffer", e))?
+                .copy_from_slice(&indices);
+            let mesh = mesh.commit();
+            triangle_geometry = Some(scene.attach_geometry(&mesh));
+        }
+
+        let mut sphere_geometry = None;
+        if !spheres.is_empty() {
+            let mut points = device
+                .create_geometry(GeometryKind::SPHERE_POINT)
+                .map_err(|e| fail("cannot create a sphere geometry", e))?;
+            let data: Vec<[f32; 4]> = spheres
+                .iter()
+                .map(|s| {
+                    let c = s.center.as_vec3();
+                    [c.x, c.y, c.z, s.radius as f32]
+                })
+                .collect();
+            points
+                .set_new_buffer::<[f32; 4]>(BufferUsage::VERTEX, 0, Format::FLOAT4, 16, data.len())
+                .map_err(|e| fail("sphere buffer", e))?
+                .copy_from_slice(&data);
+            let points = points.commit();
+            sphere_geometry = Some(scene.attach_geometry(&points));
+        }
+        scene.commit();
+        if device.get_error() != embree3::sys::RTCError::NONE {
+            return Err(EmbreeError(format!(
+                "commit failed: {:?}",
+                device.get_error()
+            )));
+        }
+
+        let counts = SceneCounts {
+            triangles: triangles.len(),
+            spheres: spheres.len(),
+            planes: planes.len(),
+            accel_bytes: 0,
+        };
+        Ok(EmbreeScene {
+            scene,
+            _device: device,
+            triangle_geometry,
+            sphere_geometry,
+            triangles,
+            spheres,
+            planes,
+            counts,
+        })
+    }
+
+    /// Embree's ray for `(tmin, tmax)`: float32, bounds one step inside the interval.
+    fn embree_ray(ray: &Ray, tmax: f64) -> embree3::Ray {
+        let tnear = f32_at_most(ray.tmin).next_up();
+        let tfar = f32_at_least(tmax).next_down();
+        embree3::Ray::segment(
+            ray.origin.as_vec3().to_array(),
+            ray.direction.as_vec3().to_array(),
+            tnear,
+            tfar,
+        )
+    }
+
+    fn nearest_plane(&self, ray: &Ray) -> Option<Hit> {
+        let mut best = None;
+        let mut tmax = ray.tmax;
+        for (i, plane) in self.planes.iter().enumerate() {
+            if let Some(t) = plane.intersect(ray, tmax) {
+                tmax = t;
+                best = Some(Hit {
+                    t,
+                    primitive: Primitive::Plane(i as u32),
+                });
+            }
+        }
+        best
+    }
+}
+
+impl Tracer for EmbreeScene {
+    fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        let plane = self.nearest_plane(ray);
+        if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
+            return plane;
+        }
+        let tmax = plane.map_or(ray.tmax, |h| h.t);
+        let mut query = RayHit::from_ray(Self::embree_ray(ray, tmax));
+        self.scene
+            .intersect(&mut IntersectContext::incoherent(), &mut query);
+        let hit = query.hit;
+        if hit.geomID == INVALID {
+            return plane;
+        }
+        let t = f64::from(query.ray.tfar);
+        let primitive = if Some(hit.geomID) == self.sphere_geometry {
+            Primitive::Sphere(hit.primID)
+        } else {
+            Primitive::Triangle {
+                slot: hit.primID,
+                b1: hit.u,
+                b2: hit.v,
+            }
+        };
+        Some(Hit { t, primitive })
+    }
+
+    fn any_hit(&self, ray: &Ray) -> bool {
+        if self
+            .planes
+            .iter()
+            .any(|p| p.intersect(ray, ray.tmax).is_some())
+        {
+            return true;
+        }
+        if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
+            return false;
+        }
+        let mut query = Self::embree_ray(ray, ray.tmax);
+        self.scene
+            .occluded(&mut IntersectContext::incoherent(), &mut query)
+    }
+
+    fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
+        match hit.primitive {
+            Primitive::Plane(i) => self.planes[i as usize].normal,
+            Primitive::Sphere(i) => self.spheres[i as usize].normal(ray.at(hit.t)),
+            Primitive::Triangle { slot, .. } => {
+                let [v0, v1, v2] = self.triangles[slot as usize];
+                triangle::geometric_normal(v0, v1, v2)
+            }
+        }
+    }
+
+    fn triangle_id(&self, slot: u32) -> u32 {
+        slot
+    }
+
+    fn counts(&self) -> SceneCounts {
+        self.counts
+    }
+}

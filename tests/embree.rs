@@ -1,0 +1,181 @@
+//! The Embree reference backend (cargo feature `embree`): verification of every shipped and
+//! stress scene, `render --backend embree`, and watertightness cross-checked with Embree.
+
+use std::sync::Arc;
+
+use glam::{DMat4, DVec3};
+use raybatch::embree::EmbreeScene;
+use raybatch::mesh::{Instance, MeshFile};
+use raybatch::scene::Tracer;
+use raybatch::{Ray, Scene, SceneGeometry, procedural};
+use serde_json::Value;
+
+use crate::util::{Dir, ppm, repo};
+
+#[test]
+fn every_shipped_and_stress_scene_agrees_with_embree() {
+    let dir = Dir::new();
+    let (scenes, stress) = (repo("scenes"), repo("scenes/stress"));
+    let run = dir.raybatch(&[
+        "verify",
+        scenes.to_str().unwrap(),
+        stress.to_str().unwrap(),
+        "--json",
+        "--max-mask-fraction",
+        "0",
+        "--max-depth-p999",
+        "2e-6",
+    ]);
+    assert_eq!(run.status, 0, "{}\n{}", run.stdout, run.stderr);
+    let lines: Vec<Value> = run
+        .stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert!(lines.len() >= 13, "{}", run.stdout);
+    for line in &lines {
+        assert_eq!(line["ok"], true, "{line}");
+        assert_eq!(line["depth"]["mask_disagreements"], 0, "{line}");
+        assert!(line["rays"].as_u64().unwrap() > 1000);
+        assert!(line["depth"]["both_hit"].as_u64().unwrap() > 0, "{line}");
+    }
+}
+
+#[test]
+fn verify_fails_past_its_limits() {
+    let dir = Dir::new();
+    let canonical = repo("scenes/canonical.json");
+    let run = dir.raybatch(&[
+        "verify",
+        canonical.to_str().unwrap(),
+        "--max-depth-p999",
+        "1e-9",
+    ]);
+    assert_eq!(run.status, 1, "{}", run.stderr);
+    assert!(
+        run.stderr.contains("limit exceeded") && run.stderr.contains("p99.9"),
+        "{}",
+        run.stderr
+    );
+}
+
+#[test]
+fn the_embree_backend_renders_the_canonical_scene_exactly() {
+    let dir = Dir::new();
+    dir.write(
+        "canonical.json",
+        r#"{"image": {"width": 640, "height": 480}, "spheres": [{"center": [0, 0, 3], "radius": 1}]}"#,
+    );
+    let run = dir.raybatch(&[
+        "render",
+        "canonical.json",
+        "--backend",
+        "embree",
+        "--stats",
+        "s.json",
+    ]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    assert_eq!(ppm(&dir.read("canonical.ppm")).count([255; 3]), 22_632);
+    let stats: Value = serde_json::from_slice(&dir.read("s.json")).unwrap();
+    assert_eq!(stats["backend"], "embree");
+}
+
+#[test]
+fn embree_in_robust_mode_agrees_that_nothing_leaks() {
+    let mesh = Arc::new(MeshFile {
+        geometries: vec![procedural::icosphere(3)],
+        instances: vec![Instance {
+            geometry: 0,
+            transform: DMat4::IDENTITY,
+        }],
+        warnings: Vec::new(),
+    });
+    let mut geometry = SceneGeometry::default();
+    let transform =
+        DMat4::from_translation(DVec3::new(0.3, -1.1, 2.0)) * DMat4::from_scale(DVec3::splat(3.7));
+    geometry.add_mesh(&mesh, transform, "ico".as_ref()).unwrap();
+    let targets: Vec<DVec3> = geometry
+        .triangles
+        .iter()
+        .flat_map(|t| {
+            let p = t.map(|v| DVec3::from_array(v.map(f64::from)));
+            [p[0], (p[0] + p[1]) / 2.0, p[0] + (p[2] - p[0]) * 0.3]
+        })
+        .collect();
+    let ours = Scene::build(geometry.clone());
+    let reference = EmbreeScene::build(geometry).unwrap();
+    let origin = DVec3::new(0.3, -1.1, 2.0);
+    for target in targets {
+        let ray = Ray {
+            origin,
+            direction: (target - origin).normalize(),
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        };
+        let a = Tracer::closest_hit(&ours, &ray).expect("raybatch leaked");
+        let b = reference.closest_hit(&ray).expect("Embree leaked");
+        assert!((a.t - b.t).abs() <= 1e-5 * b.t, "{} vs {}", a.t, b.t);
+        assert!(reference.any_hit(&ray));
+    }
+}
+
+#[test]
+#[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
+fn scanned_models_agree_with_embree() {
+    let models = std::env::var("RAYBATCH_MODELS").expect("set RAYBATCH_MODELS");
+    let dir = Dir::new();
+    let mut count = 0;
+    for entry in std::fs::read_dir(&models).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "obj") {
+            continue;
+        }
+        // Frame each model from its bounds, from two sides.
+        let mesh = raybatch::mesh::load(&path).unwrap();
+        let points = mesh.geometries.iter().flat_map(|g| g.positions.iter());
+        let (lo, hi) = points.fold(
+            (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), p| {
+                let p = DVec3::from_array(p.map(f64::from));
+                (lo.min(p), hi.max(p))
+            },
+        );
+        let (centre, radius) = ((lo + hi) / 2.0, (hi - lo).length() / 2.0);
+        for (side, eye) in [
+            ("front", DVec3::new(0.4, 0.3, 1.0)),
+            ("back", DVec3::new(-0.7, -0.2, -1.0)),
+        ] {
+            let from = centre + eye.normalize() * radius * 2.2;
+            let stem = path.file_stem().unwrap().to_string_lossy();
+            dir.write(
+                &format!("{stem}-{side}.json"),
+                format!(
+                    r#"{{"image": {{"width": 256, "height": 192}}, "integrator": {{"type": "depth"}},
+                        "camera": {{"look_from": [{}, {}, {}], "look_at": [{}, {}, {}], "vfov": 40}},
+                        "meshes": [{{"file": {:?}}}]}}"#,
+                    from.x, from.y, from.z, centre.x, centre.y, centre.z,
+                    path.display().to_string()
+                ),
+            );
+            count += 1;
+        }
+    }
+    assert!(count >= 10);
+    let run = dir.raybatch(&[
+        "verify",
+        ".",
+        "--json",
+        "--max-mask-fraction",
+        "1e-4",
+        "--max-depth-p999",
+        "1e-5",
+    ]);
+    assert_eq!(run.status, 0, "{}\n{}", run.stdout, run.stderr);
+    for line in run.stdout.lines() {
+        let line: Value = serde_json::from_str(line).unwrap();
+        assert!(
+            line["depth"]["both_hit"].as_u64().unwrap() > 1000,
+            "model not in view: {line}"
+        );
+    }
+}
