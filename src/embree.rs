@@ -14,7 +14,7 @@ use glam::DVec3;
 use crate::bvh::{f32_at_least, f32_at_most};
 use crate::plane::Plane;
 use crate::ray::Ray;
-use crate::scene::{Hit, Primitive, SceneCounts, SceneGeometry, Tracer};
+use crate::scene::{Hit, Primitive, SceneCounts, SceneGeometry, Tracer, nearest_plane};
 use crate::sphere::Sphere;
 use crate::triangle;
 
@@ -129,26 +129,11 @@ impl EmbreeScene {
             tfar,
         )
     }
-
-    fn nearest_plane(&self, ray: &Ray) -> Option<Hit> {
-        let mut best = None;
-        let mut tmax = ray.tmax;
-        for (i, plane) in self.planes.iter().enumerate() {
-            if let Some(t) = plane.intersect(ray, tmax) {
-                tmax = t;
-                best = Some(Hit {
-                    t,
-                    primitive: Primitive::Plane(i as u32),
-                });
-            }
-        }
-        best
-    }
 }
 
 impl Tracer for EmbreeScene {
     fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
-        let plane = self.nearest_plane(ray);
+        let plane = nearest_plane(&self.planes, ray);
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return plane;
         }

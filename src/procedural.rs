@@ -90,10 +90,20 @@ pub fn torus(major: f64, minor: f64, rings: u32, sides: u32) -> Geometry {
             ]);
         }
     }
-    let index = |i: u32, j: u32| (i % rings) * sides + (j % sides);
-    let mut triangles = Vec::with_capacity((2 * rings * sides) as usize);
-    for i in 0..rings {
-        for j in 0..sides {
+    let triangles = quads(rings, sides, |i, j| (i % rings) * sides + (j % sides));
+    Geometry {
+        positions,
+        triangles,
+    }
+}
+
+/// Two triangles `(a, b, c)`, `(a, c, d)` for each cell `(i, j)` of a `columns × rows` grid
+/// of quads whose corners `a, b, c, d` are `index(i, j)`, `index(i+1, j)`,
+/// `index(i+1, j+1)`, `index(i, j+1)`.
+fn quads(columns: u32, rows: u32, index: impl Fn(u32, u32) -> u32) -> Vec<[u32; 3]> {
+    let mut triangles = Vec::with_capacity(2 * columns as usize * rows as usize);
+    for i in 0..columns {
+        for j in 0..rows {
             let (a, b, c, d) = (
                 index(i, j),
                 index(i + 1, j),
@@ -104,10 +114,7 @@ pub fn torus(major: f64, minor: f64, rings: u32, sides: u32) -> Geometry {
             triangles.push([a, c, d]);
         }
     }
-    Geometry {
-        positions,
-        triangles,
-    }
+    triangles
 }
 
 /// The text of an OBJ file holding `geometry`, vertices written exactly (shortest
@@ -285,20 +292,7 @@ pub fn pixel_grid(cells: u32) -> Geometry {
             positions.push([u as f32, v as f32, 1.0]);
         }
     }
-    let index = |i: u32, j: u32| j * (cells + 2) + i;
-    let mut triangles = Vec::new();
-    for j in 0..=cells {
-        for i in 0..=cells {
-            let (a, b, c, d) = (
-                index(i, j),
-                index(i + 1, j),
-                index(i + 1, j + 1),
-                index(i, j + 1),
-            );
-            triangles.push([a, b, c]);
-            triangles.push([a, c, d]);
-        }
-    }
+    let triangles = quads(cells + 1, cells + 1, |i, j| j * (cells + 2) + i);
     Geometry {
         positions,
         triangles,

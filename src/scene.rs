@@ -267,17 +267,8 @@ impl Scene {
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
     #[inline]
     pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
-        let mut best: Option<Hit> = None;
-        let mut tmax = ray.tmax;
-        for (i, plane) in self.planes.iter().enumerate() {
-            if let Some(t) = plane.intersect(ray, tmax) {
-                tmax = t;
-                best = Some(Hit {
-                    t,
-                    primitive: Primitive::Plane(i as u32),
-                });
-            }
-        }
+        let mut best = nearest_plane(&self.planes, ray);
+        let mut tmax = best.map_or(ray.tmax, |h| h.t);
         if !self.sphere_bvh.is_empty() {
             let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
             self.sphere_bvh
@@ -397,6 +388,22 @@ impl Tracer for Scene {
     fn counts(&self) -> SceneCounts {
         self.counts
     }
+}
+
+/// The nearest of `planes` hit with `ray.tmin < t < ray.tmax`, if any.
+pub fn nearest_plane(planes: &[Plane], ray: &Ray) -> Option<Hit> {
+    let mut best = None;
+    let mut tmax = ray.tmax;
+    for (i, plane) in planes.iter().enumerate() {
+        if let Some(t) = plane.intersect(ray, tmax) {
+            tmax = t;
+            best = Some(Hit {
+                t,
+                primitive: Primitive::Plane(i as u32),
+            });
+        }
+    }
+    best
 }
 
 /// A float64 ray rounded for the float32 triangle path.

@@ -117,28 +117,10 @@ fn vertices_and_edges_on_pixel_rays_leave_no_gaps() {
     // pixel-centre rays of a 64 × 64 default camera cross it ((u, v) are dyadic): every
     // ray passes through a vertex shared by six triangles; none may slip through.
     let dir = Dir::new();
-    let n = 64;
-    let mut obj = String::new();
-    for j in 0..=n + 1 {
-        for i in 0..=n + 1 {
-            // Pixel centres are at u = (2i + 1 − 64)/64; one extra ring outside.
-            let u = (2.0 * f64::from(i) - 1.0 - 64.0) / 64.0;
-            let v = (64.0 - 2.0 * f64::from(j) + 1.0) / 64.0;
-            obj.push_str(&format!("v {u} {v} 1\n"));
-        }
-    }
-    let index = |i: u32, j: u32| j * (n + 2) + i + 1;
-    for j in 0..=n {
-        for i in 0..=n {
-            let (a, b, c, d) = (
-                index(i, j),
-                index(i + 1, j),
-                index(i + 1, j + 1),
-                index(i, j + 1),
-            );
-            obj.push_str(&format!("f {a} {b} {c}\nf {a} {c} {d}\n"));
-        }
-    }
+    let grid = raybatch::procedural::pixel_grid(64);
+    // The grid's vertices are the exact crossing points: (2i − 1 − 64)/64 etc.
+    assert_eq!(grid.positions[1], [-63.0 / 64.0, 65.0 / 64.0, 1.0]);
+    let obj = raybatch::procedural::to_obj(&grid, "");
     dir.write("grid.obj", obj);
     let image = dir.ppm_of(
         "g.json",
