@@ -10,8 +10,9 @@
 //!   (float32 for triangles, float64 for spheres), never quantized;
 //! - the slab test uses `1/d` as IEEE gives it (±∞ for a zero component) with NaN-ignoring
 //!   min/max, so rays parallel to a slab or starting on its plane are handled exactly;
-//! - the exit distance is widened by `1 + 2γ(3)` (Ize, "Robust BVH Ray Traversal", JCGT
-//!   2013), which bounds the rounding of the test, so no box a ray truly enters is culled;
+//! - exit distances are widened by a factor that bounds the rounding of the test (Ize,
+//!   "Robust BVH Ray Traversal", JCGT 2013; see [`Scalar::EXIT_SCALE`]), so no box a ray
+//!   truly enters is culled;
 //! - the entry distance starts at the ray's `tmin`, and the exit at the current `tmax`;
 //! - the traversal stack is sized from the tree's actual depth at build time, so it can
 //!   never overflow (deep trees use a heap stack instead of a fixed one).
@@ -68,8 +69,12 @@ pub trait Scalar:
 {
     const INFINITY: Self;
     const NEG_INFINITY: Self;
-    /// `1 + 2γ(3)` with `γ(n) = nu / (1 − nu)` and `u` the unit roundoff, rounded up:
-    /// Ize's bound on the relative rounding error of the slab distances.
+    /// The factor that widens every exit distance (it scales the far planes' reciprocal
+    /// directions). With `u` the unit roundoff and `γ(n) = nu / (1 − nu)`, an entry is
+    /// computed within `γ(3)` of the truth (subtraction, reciprocal, product) and an exit
+    /// within `γ(4)` (one more rounding for the scaled reciprocal), so any factor of at
+    /// least `(1 + γ(3)) / (1 − γ(4))`, about `1 + 7u`, keeps a truly entered box entered
+    /// (Ize, "Robust BVH Ray Traversal", JCGT 2013). We use `1 + 16u`.
     const EXIT_SCALE: Self;
     fn recip(self) -> Self;
     fn from_f32(x: f32) -> Self;
@@ -80,9 +85,8 @@ pub trait Scalar:
 impl Scalar for f32 {
     const INFINITY: f32 = f32::INFINITY;
     const NEG_INFINITY: f32 = f32::NEG_INFINITY;
-    // u = 2^-24: 2γ(3) = 6u / (1 − 3u), a hair above 3 ulps of 1.0; 4 ulps also absorbs
-    // the rounding of the multiplication itself.
-    const EXIT_SCALE: f32 = 1.0 + 4.0 * f32::EPSILON;
+    // u = 2^-24 and EPSILON = 2u: 1 + 16u.
+    const EXIT_SCALE: f32 = 1.0 + 8.0 * f32::EPSILON;
     #[inline(always)]
     fn recip(self) -> f32 {
         1.0 / self
@@ -100,8 +104,8 @@ impl Scalar for f32 {
 impl Scalar for f64 {
     const INFINITY: f64 = f64::INFINITY;
     const NEG_INFINITY: f64 = f64::NEG_INFINITY;
-    // u = 2^-53: 2γ(3) ≈ 6.7e-16 = 3 ulps of 1.0; 4 as for f32.
-    const EXIT_SCALE: f64 = 1.0 + 4.0 * f64::EPSILON;
+    // u = 2^-53 and EPSILON = 2u: 1 + 16u.
+    const EXIT_SCALE: f64 = 1.0 + 8.0 * f64::EPSILON;
     #[inline(always)]
     fn recip(self) -> f64 {
         1.0 / self
@@ -176,6 +180,8 @@ pub struct BoxRay<T> {
     pub origin: [T; 3],
     /// `1/d` per axis; ±∞ for a zero component.
     pub inv_dir: [T; 3],
+    /// `inv_dir · EXIT_SCALE`, for the far planes (see [`Scalar::EXIT_SCALE`]).
+    pub inv_dir_far: [T; 3],
     /// Per axis, 1 when the direction is negative (the near plane is then the maximum).
     pub near: [usize; 3],
     pub tmin: T,
@@ -183,9 +189,11 @@ pub struct BoxRay<T> {
 
 impl<T: Scalar> BoxRay<T> {
     pub fn new(origin: [T; 3], direction: [T; 3], tmin: T) -> BoxRay<T> {
+        let inv_dir = direction.map(Scalar::recip);
         BoxRay {
             origin,
-            inv_dir: direction.map(Scalar::recip),
+            inv_dir,
+            inv_dir_far: inv_dir.map(|i| i * T::EXIT_SCALE),
             near: direction.map(|d| usize::from(d.sign_bit())),
             tmin,
         }
@@ -220,6 +228,7 @@ pub fn intersect_node<T: Scalar>(node: &Node<T>, ray: &BoxRay<T>, tmax: T) -> (u
     ];
     let [ox, oy, oz] = ray.origin;
     let [ix, iy, iz] = ray.inv_dir;
+    let [fx, fy, fz] = ray.inv_dir_far;
     let mut entry = [T::default(); WIDTH];
     let mut mask = 0u32;
     for i in 0..WIDTH {
@@ -231,13 +240,9 @@ pub fn intersect_node<T: Scalar>(node: &Node<T>, ray: &BoxRay<T>, tmax: T) -> (u
             ),
         );
         let exit = min_keep(
-            (far[0][i] - ox) * ix,
-            min_keep(
-                (far[1][i] - oy) * iy,
-                min_keep((far[2][i] - oz) * iz, T::INFINITY),
-            ),
+            (far[0][i] - ox) * fx,
+            min_keep((far[1][i] - oy) * fy, min_keep((far[2][i] - oz) * fz, tmax)),
         );
-        let exit = min_keep(exit * T::EXIT_SCALE, tmax);
         entry[i] = enter;
         mask |= u32::from(enter <= exit) << i;
     }
@@ -323,6 +328,84 @@ impl<T: Scalar> Bvh<T> {
         Bvh::from_bvh2(&bvh2, bounds, emit_leaf)
     }
 
+    /// Builds the tree with obvhs' wide-BVH pipeline: PLOC with one primitive per leaf,
+    /// reinsertion, then the SAH-optimal collapse to 8-wide nodes with leaves of at most
+    /// `max_leaf` (≤ 3) primitives (Ylitie, Karras and Laine 2017). Only the grouping is
+    /// kept: obvhs' quantized boxes are replaced by exact ones computed from `bounds`.
+    pub fn build_wide(
+        bounds: &[Bounds<T>],
+        topology_boxes: &[Aabb],
+        mut params: BvhBuildParams,
+        emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
+    ) -> Bvh<T> {
+        assert_eq!(bounds.len(), topology_boxes.len());
+        if bounds.is_empty() {
+            return Bvh {
+                nodes: Vec::new(),
+                stack_bound: 0,
+                depth: 0,
+            };
+        }
+        let max_leaf = params.max_prims_per_leaf.clamp(1, 3);
+        params.max_prims_per_leaf = 1;
+        let mut bvh2 = obvhs::ploc::PlocBuilder::with_capacity(topology_boxes.len()).build(
+            params.ploc_search_distance,
+            topology_boxes,
+            (0..topology_boxes.len() as u32).collect(),
+            params.sort_precision,
+            params.search_depth_threshold,
+        );
+        obvhs::bvh2::reinsertion::ReinsertionOptimizer::default().run(
+            &mut bvh2,
+            params.reinsertion_batch_ratio,
+            None,
+        );
+        let wide = obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh(&bvh2, max_leaf, false, false);
+        Bvh::from_cwbvh(&wide, bounds, emit_leaf)
+    }
+
+    /// Takes the node grouping of an obvhs compressed wide BVH: slot `i` of node `n` is an
+    /// inner node when bit `i` of `imask` is set (inner children follow `child_base_idx` in
+    /// slot order), else a leaf whose `child_meta` gives its primitives' offset (low 5
+    /// bits) and count (unary, high 3 bits) from `primitive_base_idx`.
+    pub fn from_cwbvh(
+        wide: &obvhs::cwbvh::CwBvh,
+        bounds: &[Bounds<T>],
+        mut emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
+    ) -> Bvh<T> {
+        let mut nodes = vec![Node::empty(); wide.nodes.len()];
+        let mut slot_bounds = vec![[Bounds::EMPTY; WIDTH]; wide.nodes.len()];
+        let mut level = vec![0usize; wide.nodes.len()];
+        level[0] = 1;
+        for (n, source) in wide.nodes.iter().enumerate() {
+            let mut inner = 0;
+            for (slot, &meta) in source.child_meta.iter().enumerate() {
+                if source.imask & (1 << slot) != 0 {
+                    let child = source.child_base_idx as usize + inner;
+                    inner += 1;
+                    nodes[n].children[slot] = child as ChildRef;
+                    level[child] = level[n] + 1;
+                } else if meta != 0 {
+                    let count = (meta >> 5).count_ones() as usize;
+                    let first = source.primitive_base_idx as usize + (meta & 0b1_1111) as usize;
+                    let prims = &wide.primitive_indices[first..first + count];
+                    slot_bounds[n][slot] = prims
+                        .iter()
+                        .fold(Bounds::EMPTY, |acc, &p| acc.union(&bounds[p as usize]));
+                    let (first, count) = emit_leaf(prims);
+                    nodes[n].children[slot] = leaf_ref(first, count);
+                }
+            }
+        }
+        let depth = level.iter().copied().max().unwrap_or(1);
+        fill_bounds(&mut nodes, &mut slot_bounds);
+        Bvh {
+            nodes,
+            stack_bound: (WIDTH - 1) * depth + 1,
+            depth,
+        }
+    }
+
     /// Converts a binary obvhs tree: each node takes up to [`WIDTH`] descendants, always
     /// opening the inner one with the largest surface area. Iterative, so a degenerate
     /// (very deep) tree cannot exhaust the call stack.
@@ -388,21 +471,7 @@ impl<T: Scalar> Bvh<T> {
             }
         }
 
-        // Children always come after their parent, so a reverse sweep sees every child's
-        // box before the parent needs it.
-        for index in (0..nodes.len()).rev() {
-            for slot in 0..WIDTH {
-                let child = nodes[index].children[slot];
-                if child & LEAF == 0 && child != 0 {
-                    let b = slot_bounds[child as usize]
-                        .iter()
-                        .fold(Bounds::EMPTY, |acc, s| acc.union(s));
-                    slot_bounds[index][slot] = b;
-                }
-                let b = slot_bounds[index][slot];
-                nodes[index].set_bounds(slot, &b);
-            }
-        }
+        fill_bounds(&mut nodes, &mut slot_bounds);
         Bvh {
             nodes,
             stack_bound: (WIDTH - 1) * depth + 1,
@@ -470,10 +539,12 @@ impl<T: Scalar> Bvh<T> {
                     while mask != 0 {
                         let i = mask.trailing_zeros() as usize;
                         mask &= mask - 1;
-                        // Insertion sort, farthest first.
+                        // Insertion sort by (entry, child), farthest first: children
+                        // are visited nearest first, the smaller reference on a tie (as
+                        // the AVX2 traversal does, so both meet equal hits in one order).
                         let item = (node.children[i], entry[i]);
                         let mut j = n;
-                        while j > 0 && hits[j - 1].1 < item.1 {
+                        while j > 0 && (hits[j - 1].1, hits[j - 1].0) < (item.1, item.0) {
                             hits[j] = hits[j - 1];
                             j -= 1;
                         }
@@ -547,6 +618,25 @@ impl<T: Scalar> Bvh<T> {
                 Some((child, _)) => current = child,
                 None => return false,
             }
+        }
+    }
+}
+
+/// Writes every slot's box into its node. Leaf slots come with their boxes; an inner
+/// slot's box is the union of its child's slots. Children always come after their parent,
+/// so a reverse sweep sees every child's box before the parent needs it.
+fn fill_bounds<T: Scalar>(nodes: &mut [Node<T>], slot_bounds: &mut [[Bounds<T>; WIDTH]]) {
+    for index in (0..nodes.len()).rev() {
+        for slot in 0..WIDTH {
+            let child = nodes[index].children[slot];
+            if child & LEAF == 0 && child != 0 {
+                let b = slot_bounds[child as usize]
+                    .iter()
+                    .fold(Bounds::EMPTY, |acc, s| acc.union(s));
+                slot_bounds[index][slot] = b;
+            }
+            let b = slot_bounds[index][slot];
+            nodes[index].set_bounds(slot, &b);
         }
     }
 }

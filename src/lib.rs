@@ -22,6 +22,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod bench;
 pub mod bvh;
 pub mod camera;
 pub mod compare;
@@ -41,6 +42,8 @@ pub mod ray;
 pub mod render;
 pub mod sampler;
 pub mod scene;
+#[cfg(target_arch = "x86_64")]
+pub mod simd;
 pub mod sphere;
 pub mod transform;
 pub mod triangle;

@@ -18,13 +18,10 @@ use crate::mesh::{MeshCache, MeshFile};
 use crate::plane::Plane;
 use crate::ray::Ray;
 use crate::sphere::Sphere;
-use crate::triangle::{self, ShearedRay, TriangleHit};
-
-/// Triangles tested together; one leaf holds one or more blocks.
-pub const BLOCK: usize = 4;
+use crate::triangle::{self, BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most triangles one leaf holds.
-const TRIANGLES_PER_LEAF: u32 = 8;
+const TRIANGLES_PER_LEAF: u32 = 3;
 /// Most spheres one leaf holds.
 const SPHERES_PER_LEAF: u32 = 4;
 
@@ -110,49 +107,6 @@ impl SceneGeometry {
     }
 }
 
-/// Four triangles stored lane by lane (`v[vertex][axis][lane]`) so one ray meets all four
-/// at once. A leaf's last block repeats its last triangle in unused lanes.
-#[derive(Debug, Clone, Copy)]
-#[repr(C, align(16))]
-pub struct TriangleBlock {
-    pub v: [[[f32; BLOCK]; 3]; 3],
-    /// Each lane's index into the scene's triangle list (input order).
-    pub ids: [u32; BLOCK],
-}
-
-impl TriangleBlock {
-    /// Vertex `k` of lane `lane`.
-    pub fn vertex(&self, lane: usize, k: usize) -> [f32; 3] {
-        [self.v[k][0][lane], self.v[k][1][lane], self.v[k][2][lane]]
-    }
-
-    /// The nearest hit among the lanes with `tmin < t < tmax`.
-    #[inline(always)]
-    pub fn intersect(
-        &self,
-        ray: &ShearedRay,
-        tmin: f32,
-        tmax: f32,
-    ) -> Option<(usize, TriangleHit)> {
-        let mut best: Option<(usize, TriangleHit)> = None;
-        let mut tmax = tmax;
-        for lane in 0..BLOCK {
-            if let Some(hit) = triangle::intersect(
-                ray,
-                self.vertex(lane, 0),
-                self.vertex(lane, 1),
-                self.vertex(lane, 2),
-                tmin,
-                tmax,
-            ) {
-                tmax = hit.t;
-                best = Some((lane, hit));
-            }
-        }
-        best
-    }
-}
-
 /// What a ray hit.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Hit {
@@ -218,6 +172,8 @@ pub struct Scene {
     sphere_bvh: Bvh<f64>,
     blocks: Vec<TriangleBlock>,
     triangle_bvh: Bvh<f32>,
+    /// Whether the triangle tree is traversed by the AVX2 kernels ([`crate::simd`]).
+    simd: bool,
     counts: SceneCounts,
 }
 
@@ -253,6 +209,7 @@ impl Scene {
             sphere_ids,
             spheres_by_id: spheres,
             sphere_bvh,
+            simd: simd_available() && triangle_bvh.stack_bound() <= SIMD_STACK,
             blocks,
             triangle_bvh,
             counts,
@@ -262,6 +219,17 @@ impl Scene {
     /// The triangle tree (for inspection and tests).
     pub fn triangle_bvh(&self) -> &Bvh<f32> {
         &self.triangle_bvh
+    }
+
+    /// Whether rays meet the triangles through the AVX2 kernels.
+    pub fn uses_simd(&self) -> bool {
+        self.simd
+    }
+
+    /// Turns the AVX2 kernels off (or back on where the CPU has them), to compare the two
+    /// paths; both give bit-identical results.
+    pub fn set_simd(&mut self, on: bool) {
+        self.simd = on && simd_available() && self.triangle_bvh.stack_bound() <= SIMD_STACK;
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -286,24 +254,11 @@ impl Scene {
         }
         if !self.triangle_bvh.is_empty() {
             let r = TriangleRay::new(ray, tmax);
-            let mut tmax32 = r.tmax;
-            let mut found = None;
-            self.triangle_bvh
-                .closest(&r.boxes, &mut tmax32, |first, count, tmax| {
-                    for b in first..first + count {
-                        if let Some((lane, hit)) =
-                            self.blocks[b as usize].intersect(&r.sheared, r.tmin, *tmax)
-                        {
-                            *tmax = hit.t;
-                            found = Some((b, lane, hit));
-                        }
-                    }
-                });
-            if let Some((block, lane, hit)) = found {
+            if let Some((nearest, hit)) = self.nearest_triangle(&r) {
                 best = Some(Hit {
-                    t: f64::from(hit.t),
+                    t: f64::from(nearest.t),
                     primitive: Primitive::Triangle {
-                        slot: block * BLOCK as u32 + lane as u32,
+                        slot: nearest.slot,
                         b1: hit.b1,
                         b2: hit.b2,
                     },
@@ -311,6 +266,40 @@ impl Scene {
             }
         }
         best
+    }
+
+    /// The nearest triangle hit of a rounded ray, through the AVX2 kernels when the scene
+    /// uses them: both paths give the same [`Nearest`] (see its tie rule).
+    #[inline(always)]
+    fn nearest_triangle(&self, r: &TriangleRay) -> Option<(Nearest, TriangleHit)> {
+        #[cfg(target_arch = "x86_64")]
+        if self.simd {
+            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+            return unsafe {
+                crate::simd::closest(
+                    &self.triangle_bvh,
+                    &self.blocks,
+                    &r.sheared,
+                    &r.boxes,
+                    r.tmax,
+                )
+            };
+        }
+        let mut nearest = Nearest::before(r.tmax);
+        let mut found = None;
+        let mut tmax = r.tmax;
+        self.triangle_bvh
+            .closest(&r.boxes, &mut tmax, |first, count, tmax| {
+                for b in first..first + count {
+                    if let Some(hit) =
+                        self.blocks[b as usize].intersect(&r.sheared, r.tmin, b, &mut nearest)
+                    {
+                        found = Some(hit);
+                    }
+                }
+                *tmax = nearest.t;
+            });
+        found.map(|hit| (nearest, hit))
     }
 
     /// Whether anything is hit with `ray.tmin < t < ray.tmax`; stops at the first hit found.
@@ -335,10 +324,24 @@ impl Scene {
         }
         if !self.triangle_bvh.is_empty() {
             let r = TriangleRay::new(ray, ray.tmax);
+            #[cfg(target_arch = "x86_64")]
+            if self.simd {
+                // SAFETY: as in `closest_hit`.
+                return unsafe {
+                    crate::simd::any(
+                        &self.triangle_bvh,
+                        &self.blocks,
+                        &r.sheared,
+                        &r.boxes,
+                        r.tmax,
+                    )
+                };
+            }
             return self.triangle_bvh.any(&r.boxes, r.tmax, |first, count| {
                 (first..first + count).any(|b| {
+                    let mut nearest = Nearest::before(r.tmax);
                     self.blocks[b as usize]
-                        .intersect(&r.sheared, r.tmin, r.tmax)
+                        .intersect(&r.sheared, r.tmin, b, &mut nearest)
                         .is_some()
                 })
             });
@@ -388,6 +391,15 @@ impl Tracer for Scene {
     fn counts(&self) -> SceneCounts {
         self.counts
     }
+}
+
+#[cfg(target_arch = "x86_64")]
+use crate::simd::{STACK as SIMD_STACK, available as simd_available};
+#[cfg(not(target_arch = "x86_64"))]
+const SIMD_STACK: usize = 0;
+#[cfg(not(target_arch = "x86_64"))]
+fn simd_available() -> bool {
+    false
 }
 
 /// The nearest of `planes` hit with `ray.tmin < t < ray.tmax`, if any.
@@ -448,33 +460,41 @@ fn build_triangles(
         .iter()
         .map(|b| Aabb::new(b.min.into(), b.max.into()))
         .collect();
-    let mut blocks: Vec<TriangleBlock> = Vec::with_capacity(triangles.len().div_ceil(BLOCK) + 1);
-    let bvh = Bvh::build(
+    // Triangles are laid out densely in leaf order, four to a block; a leaf covers the one
+    // or two blocks its range touches. Testing a neighbouring leaf's triangles on the way
+    // is harmless (they are real triangles of the scene) and keeps blocks full.
+    let mut order: Vec<u32> = Vec::with_capacity(triangles.len());
+    let bvh = Bvh::build_wide(
         &bounds,
         &boxes,
         preset.params(TRIANGLES_PER_LEAF),
         |prims| {
-            let first = blocks.len() as u32;
-            for chunk in prims.chunks(BLOCK) {
-                let mut block = TriangleBlock {
-                    v: [[[0.0; BLOCK]; 3]; 3],
-                    ids: [0; BLOCK],
-                };
-                for lane in 0..BLOCK {
-                    let id = chunk[lane.min(chunk.len() - 1)];
-                    let t = &triangles[id as usize];
-                    for (k, vertex) in t.iter().enumerate() {
-                        for (axis, &coordinate) in vertex.iter().enumerate() {
-                            block.v[k][axis][lane] = coordinate;
-                        }
-                    }
-                    block.ids[lane] = id;
-                }
-                blocks.push(block);
-            }
-            (first, blocks.len() as u32 - first)
+            let start = order.len();
+            order.extend_from_slice(prims);
+            let (first, last) = (start / BLOCK, (order.len() - 1) / BLOCK);
+            (first as u32, (last - first + 1) as u32)
         },
     );
+    let blocks = order
+        .chunks(BLOCK)
+        .map(|chunk| {
+            let mut block = TriangleBlock {
+                v: [[[0.0; BLOCK]; 3]; 3],
+                ids: [0; BLOCK],
+            };
+            for lane in 0..BLOCK {
+                // The last block repeats its last triangle in unused lanes.
+                let id = chunk[lane.min(chunk.len() - 1)];
+                for (k, vertex) in triangles[id as usize].iter().enumerate() {
+                    for (axis, &coordinate) in vertex.iter().enumerate() {
+                        block.v[k][axis][lane] = coordinate;
+                    }
+                }
+                block.ids[lane] = id;
+            }
+            block
+        })
+        .collect();
     (blocks, bvh)
 }
 

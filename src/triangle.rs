@@ -130,6 +130,80 @@ pub fn edge_functions_f64(ax: f32, ay: f32, bx: f32, by: f32, cx: f32, cy: f32) 
     )
 }
 
+/// Triangles tested together; one leaf of the tree holds one or more blocks.
+pub const BLOCK: usize = 4;
+
+/// Four triangles stored lane by lane (`v[vertex][axis][lane]`) so one ray meets all four
+/// at once. A leaf's last block repeats its last triangle in unused lanes.
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(16))]
+pub struct TriangleBlock {
+    pub v: [[[f32; BLOCK]; 3]; 3],
+    /// Each lane's index into the scene's triangle list (input order).
+    pub ids: [u32; BLOCK],
+}
+
+impl TriangleBlock {
+    /// Vertex `k` of lane `lane`.
+    pub fn vertex(&self, lane: usize, k: usize) -> [f32; 3] {
+        [self.v[k][0][lane], self.v[k][1][lane], self.v[k][2][lane]]
+    }
+
+    /// Tests the four lanes and records in `nearest` any hit that improves on it (see
+    /// [`Nearest`]); `block` is this block's index, so lane `l` is slot `4·block + l`.
+    /// Returns the improving hit, if any.
+    #[inline(always)]
+    pub fn intersect(
+        &self,
+        ray: &ShearedRay,
+        tmin: f32,
+        block: u32,
+        nearest: &mut Nearest,
+    ) -> Option<TriangleHit> {
+        let mut best = None;
+        for lane in 0..BLOCK {
+            // `t < next_up(nearest.t)` admits the ties that `Nearest::improves` decides.
+            if let Some(hit) = intersect(
+                ray,
+                self.vertex(lane, 0),
+                self.vertex(lane, 1),
+                self.vertex(lane, 2),
+                tmin,
+                nearest.t.next_up(),
+            ) {
+                let slot = block * BLOCK as u32 + lane as u32;
+                if nearest.improves(hit.t, slot) {
+                    *nearest = Nearest { t: hit.t, slot };
+                    best = Some(hit);
+                }
+            }
+        }
+        best
+    }
+}
+
+/// The nearest triangle hit so far: its distance and slot (`4·block + lane` in the tree's
+/// layout). Among hits at exactly the same distance the lowest slot wins, so the result
+/// does not depend on the order in which a traversal visits the blocks: the scalar and
+/// AVX2 paths agree bit for bit whatever their visiting order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Nearest {
+    pub t: f32,
+    pub slot: u32,
+}
+
+impl Nearest {
+    /// Nothing found yet; only hits with `t < tmax` (strictly) will improve on it.
+    pub fn before(tmax: f32) -> Nearest {
+        Nearest { t: tmax, slot: 0 }
+    }
+
+    #[inline(always)]
+    pub fn improves(&self, t: f32, slot: u32) -> bool {
+        t < self.t || (t == self.t && slot < self.slot)
+    }
+}
+
 /// The unit geometric normal `normalize(cross(v1 − v0, v2 − v0))` in float64, from the
 /// stored float32 vertices.
 pub fn geometric_normal(v0: [f32; 3], v1: [f32; 3], v2: [f32; 3]) -> glam::DVec3 {

@@ -447,3 +447,54 @@ fn a_tiny_far_sphere_matches_float64_where_the_naive_float32_formula_fails() {
         "the naive formula was expected to see nothing"
     );
 }
+
+#[test]
+fn the_avx2_kernels_give_bit_identical_hits_to_the_scalar_path() {
+    // Includes rays through shared edges (the pixel grid, the icosphere from inside), where
+    // which of two triangles at exactly the same distance is reported depends on the
+    // visiting order: the normal integrator would show a difference.
+    #[cfg(target_arch = "x86_64")]
+    if !raybatch::simd::available() {
+        eprintln!("this CPU has no AVX2: only the scalar path runs here");
+        return;
+    }
+    let mut numbers = Numbers(99);
+    let (soup_triangles, mut rays) = soup(&mut numbers, 3000);
+    let grid = placed(&procedural::pixel_grid(64), DMat4::IDENTITY);
+    let ico = placed(&procedural::icosphere(3), DMat4::IDENTITY);
+    for y in 0..64 {
+        for x in 0..64 {
+            let d = crate::util::default_camera_direction(x, y, 64, 64);
+            rays.push(ray(DVec3::ZERO, DVec3::from_array(d)));
+        }
+    }
+    for target in shared_targets(&ico.triangles).into_iter().step_by(7) {
+        rays.push(ray(DVec3::new(0.01, -0.02, 0.03), target));
+    }
+    for triangles in [soup_triangles, grid.triangles, ico.triangles] {
+        for preset in [BuildPreset::Fast, BuildPreset::Medium] {
+            let mut scene = Scene::build_with(
+                SceneGeometry {
+                    triangles: triangles.clone(),
+                    ..SceneGeometry::default()
+                },
+                preset,
+            );
+            assert!(scene.uses_simd());
+            let fast: Vec<_> = rays
+                .iter()
+                .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
+                .collect();
+            scene.set_simd(false);
+            assert!(!scene.uses_simd());
+            let scalar: Vec<_> = rays
+                .iter()
+                .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
+                .collect();
+            assert!(fast.iter().filter(|h| h.0.is_some()).count() > 100);
+            for (i, (a, b)) in fast.iter().zip(&scalar).enumerate() {
+                assert_eq!(a, b, "{preset:?}: ray {i}: {:?}", rays[i]);
+            }
+        }
+    }
+}

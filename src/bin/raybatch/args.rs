@@ -29,6 +29,31 @@ pub enum Command {
     /// compare the closest hits: hit agreement, depth error, trace times. Needs a build
     /// with `--features embree`. Exits 1 when a limit is exceeded or a job fails.
     Verify(VerifyArgs),
+    /// Measure trace throughput (closest and any hit, per thread count), build and load
+    /// times, memory and whole jobs; with `--embree`, the same rays through Embree.
+    Bench(BenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Smaller images and fewer runs (a smoke test, not figures to quote).
+    #[arg(long)]
+    pub quick: bool,
+    /// Folder with stanford-bunny.obj, nefertiti.obj and ogre.obj (e.g. ../shared/models).
+    #[arg(long, value_name = "DIR")]
+    pub models: Option<PathBuf>,
+    /// Thread counts to trace with.
+    #[arg(long, value_name = "N,...", value_delimiter = ',', default_values_t = [1, 2])]
+    pub threads: Vec<usize>,
+    /// Only the scenes whose names contain one of these words.
+    #[arg(long, value_name = "NAME,...", value_delimiter = ',')]
+    pub only: Vec<String>,
+    /// Trace the same rays with Embree too (needs `--features embree`).
+    #[arg(long)]
+    pub embree: bool,
+    /// Print JSON instead of Markdown tables.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Debug, Args)]

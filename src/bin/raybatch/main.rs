@@ -11,7 +11,7 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use clap::Parser;
 
-use args::{BackendArg, Cli, Command, CompareArgs, RenderArgs, VerifyArgs};
+use args::{BackendArg, BenchArgs, Cli, Command, CompareArgs, RenderArgs, VerifyArgs};
 use raybatch::compare::{Limits, compare_images};
 use raybatch::job::{Backend, Batch, JobOptions, manifests_in};
 
@@ -24,6 +24,7 @@ fn main() -> ExitCode {
         Command::Render(args) => render(args),
         Command::Compare(args) => compare(args),
         Command::Verify(args) => verify(args),
+        Command::Bench(args) => bench(args),
     };
     match result {
         Ok(code) => code,
@@ -223,6 +224,37 @@ fn verify(_: VerifyArgs) -> anyhow::Result<ExitCode> {
     bail!(
         "this build has no Embree backend; rebuild with `cargo build --release --features embree`"
     )
+}
+
+/// `raybatch bench`: Markdown tables (or JSON) on stdout, with the date, CPU and command.
+fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
+    if args.embree && !raybatch::job::Backend::Embree.available() {
+        bail!("--embree needs a build with `--features embree`");
+    }
+    if args.threads.contains(&0) {
+        bail!("--threads takes counts of 1 or more");
+    }
+    let temp = std::env::temp_dir().join(format!("raybatch-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&temp).with_context(|| format!("cannot create {}", temp.display()))?;
+    let options = raybatch::bench::BenchOptions {
+        quick: args.quick,
+        models: args.models.clone(),
+        threads: args.threads.clone(),
+        only: args.only.clone(),
+        embree: args.embree,
+    };
+    let report = raybatch::bench::run(&options, &temp);
+    let _ = std::fs::remove_dir_all(&temp);
+    let report = report.map_err(|e| anyhow::anyhow!(e))?;
+    if args.json {
+        println!("{}", report.to_json());
+    } else {
+        let command: Vec<String> = std::env::args().skip(1).collect();
+        println!("CPU: {}  ", raybatch::bench::cpu_name());
+        println!("Command: `raybatch {}`\n", command.join(" "));
+        print!("{}", report.to_markdown());
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The manifests named by the command line (folders expanded, duplicates dropped), and how

@@ -1,0 +1,550 @@
+//! Benchmarks users can run (`raybatch bench`): trace throughput, build and load times,
+//! memory, and whole jobs, on scenes made here (and the scanned models when given). With
+//! the `embree` feature the very same rays go through the Embree reference (robust scene,
+//! `rtcIntersect1`/`rtcOccluded1`) in the same run, and ratios are reported.
+//!
+//! Every figure is the median of several runs. Timing is never asserted in tests; the
+//! figures go to BENCHMARKS.md with the command that produced them.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+use serde_json::json;
+
+use crate::camera::{Camera, look_at_frame};
+use crate::job::{Batch, JobOptions};
+use crate::manifest::CameraDesc;
+use crate::ray::Ray;
+use crate::scene::{Scene, SceneGeometry, Tracer};
+use crate::sphere::Sphere;
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct BenchOptions {
+    /// Smaller images and fewer repetitions (for CI smoke runs).
+    pub quick: bool,
+    /// Folder of the scanned models (`stanford-bunny.obj`, `nefertiti.obj`, `ogre.obj`).
+    pub models: Option<PathBuf>,
+    /// Thread counts to trace with.
+    pub threads: Vec<usize>,
+    /// Only scenes whose name contains one of these (all when empty).
+    pub only: Vec<String>,
+    /// Also trace with Embree (needs the feature).
+    pub embree: bool,
+}
+
+/// Throughput at one thread count, in millions of rays per second.
+#[derive(Debug, Clone, Copy)]
+pub struct Throughput {
+    pub threads: usize,
+    pub closest: f64,
+    pub any: f64,
+}
+
+/// One tracer's figures for one scene.
+#[derive(Debug, Clone)]
+pub struct TracerFigures {
+    pub build_s: f64,
+    pub throughput: Vec<Throughput>,
+}
+
+/// Figures for one trace scene.
+#[derive(Debug, Clone)]
+pub struct SceneFigures {
+    pub name: String,
+    pub triangles: usize,
+    pub spheres: usize,
+    pub rays: usize,
+    /// Hits of the closest-hit pass (both tracers must agree on the count).
+    pub hits: usize,
+    /// Reading the mesh file, when there is one: seconds and MB/s.
+    pub load: Option<(f64, f64)>,
+    /// Peak resident memory added by loading and building, per triangle (Linux only).
+    pub peak_bytes_per_triangle: Option<f64>,
+    pub raybatch: TracerFigures,
+    pub embree: Option<TracerFigures>,
+}
+
+/// Figures for a whole-job benchmark.
+#[derive(Debug, Clone)]
+pub struct JobFigures {
+    pub name: String,
+    pub jobs: usize,
+    pub seconds: f64,
+}
+
+/// Everything one run measured.
+#[derive(Debug, Clone)]
+pub struct BenchReport {
+    pub scenes: Vec<SceneFigures>,
+    pub jobs: Vec<JobFigures>,
+}
+
+/// A scene to trace: geometry, a camera, an image size.
+struct TraceScene {
+    name: String,
+    geometry: SceneGeometry,
+    load: Option<(f64, f64)>,
+    peak_baseline: Option<u64>,
+    eye: DVec3,
+    target: DVec3,
+    vfov: f64,
+    size: (u32, u32),
+}
+
+/// Runs the benchmarks. `temp` is a scratch folder for files written on the way.
+pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
+    let wanted = |name: &str| {
+        options.only.is_empty() || options.only.iter().any(|o| name.contains(o.as_str()))
+    };
+    let (width, height) = if options.quick {
+        (480, 270)
+    } else {
+        (1920, 1080)
+    };
+    let mut scenes = Vec::new();
+
+    if wanted("torus") {
+        let (rings, sides) = if options.quick {
+            (200, 100)
+        } else {
+            (1000, 500)
+        };
+        let name = format!("torus-{}k", 2 * rings * sides / 1000);
+        let file = temp.join(format!("{name}.obj"));
+        let text =
+            crate::procedural::to_obj(&crate::procedural::torus(1.0, 0.35, rings, sides), "");
+        std::fs::write(&file, text).map_err(|e| format!("{}: {e}", file.display()))?;
+        scenes.push(mesh_scene(&name, &file, (width, height))?);
+    }
+    if let Some(models) = &options.models {
+        for model in ["stanford-bunny", "nefertiti", "ogre"] {
+            let file = models.join(format!("{model}.obj"));
+            if wanted(model) && file.exists() {
+                scenes.push(mesh_scene(model, &file, (width, height))?);
+            }
+        }
+    }
+    if wanted("spheres") {
+        scenes.push(sphere_field(10_000, (width, height)));
+    }
+    if wanted("canonical") {
+        scenes.push(TraceScene {
+            name: "canonical".to_string(),
+            geometry: SceneGeometry {
+                spheres: vec![Sphere {
+                    center: DVec3::new(0.0, 0.0, 3.0),
+                    radius: 1.0,
+                }],
+                ..SceneGeometry::default()
+            },
+            load: None,
+            peak_baseline: None,
+            eye: DVec3::ZERO,
+            target: DVec3::Z,
+            vfov: 90.0,
+            size: (640, 480),
+        });
+    }
+
+    let runs = if options.quick { 3 } else { 5 };
+    let mut figures = Vec::new();
+    for scene in scenes {
+        figures.push(trace_scene(scene, options, runs)?);
+    }
+
+    let mut jobs = Vec::new();
+    if wanted("batch") {
+        jobs.push(batch_of_small_jobs(
+            temp,
+            if options.quick { 20 } else { 100 },
+        )?);
+    }
+    if wanted("canonical") {
+        jobs.push(canonical_job(temp)?);
+    }
+    Ok(BenchReport {
+        scenes: figures,
+        jobs,
+    })
+}
+
+fn mesh_scene(name: &str, file: &Path, size: (u32, u32)) -> Result<TraceScene, String> {
+    let peak_baseline = reset_peak_memory();
+    let bytes = std::fs::metadata(file).map_err(|e| e.to_string())?.len() as f64;
+    let start = Instant::now();
+    let mesh = crate::mesh::load(file).map_err(|e| e.to_string())?;
+    let load_s = start.elapsed().as_secs_f64();
+    let mut geometry = SceneGeometry::default();
+    geometry
+        .add_mesh(&std::sync::Arc::new(mesh), glam::DMat4::IDENTITY, file)
+        .map_err(|e| e.to_string())?;
+    let (lo, hi) = geometry.triangles.iter().flatten().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), v| {
+            let p = DVec3::from_array(v.map(f64::from));
+            (lo.min(p), hi.max(p))
+        },
+    );
+    let (centre, radius) = ((lo + hi) / 2.0, (hi - lo).length() / 2.0);
+    Ok(TraceScene {
+        name: name.to_string(),
+        geometry,
+        load: Some((load_s, bytes / 1e6 / load_s)),
+        peak_baseline,
+        eye: centre + DVec3::new(0.3, 0.5, 1.0).normalize() * radius * 2.2,
+        target: centre,
+        vfov: 40.0,
+        size,
+    })
+}
+
+/// `count` spheres of varied sizes scattered in a cube, seen from outside.
+fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
+    let mut state = 12345u64;
+    let mut next = move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let spheres = (0..count)
+        .map(|_| Sphere {
+            center: DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 20.0,
+            radius: 0.05 + 0.25 * next(),
+        })
+        .collect();
+    TraceScene {
+        name: format!("spheres-{}k", count / 1000),
+        geometry: SceneGeometry {
+            spheres,
+            ..SceneGeometry::default()
+        },
+        load: None,
+        peak_baseline: None,
+        eye: DVec3::new(8.0, 12.0, 30.0),
+        target: DVec3::ZERO,
+        vfov: 45.0,
+        size,
+    }
+}
+
+fn camera_rays(scene: &TraceScene) -> Vec<Ray> {
+    let frame = look_at_frame(scene.eye, scene.target, DVec3::Y, scene.vfov).expect("a valid view");
+    let (w, h) = scene.size;
+    let camera = Camera::new(&CameraDesc { frame, lens: None }, w, h);
+    (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| camera.ray(x, y, 0.5, 0.5, (0.5, 0.5)))
+        .collect()
+}
+
+fn trace_scene(
+    scene: TraceScene,
+    options: &BenchOptions,
+    runs: usize,
+) -> Result<SceneFigures, String> {
+    let rays = camera_rays(&scene);
+    let triangles = scene.geometry.triangles.len();
+    let spheres = scene.geometry.spheres.len();
+    #[cfg(feature = "embree")]
+    let embree_geometry = options.embree.then(|| scene.geometry.clone());
+
+    let start = Instant::now();
+    let ours = Scene::build(scene.geometry);
+    let build_s = start.elapsed().as_secs_f64();
+    let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
+        Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
+    });
+    let hits = count_hits(&ours, &rays, |t, r| t.closest_hit(r).is_some());
+    let raybatch = TracerFigures {
+        build_s,
+        throughput: throughput(&ours, &rays, &options.threads, runs)?,
+    };
+    drop(ours);
+
+    let embree = if options.embree {
+        #[cfg(feature = "embree")]
+        {
+            let geometry = embree_geometry.expect("cloned above");
+            let start = Instant::now();
+            let reference =
+                crate::embree::EmbreeScene::build(geometry).map_err(|e| e.to_string())?;
+            let build_s = start.elapsed().as_secs_f64();
+            let reference_hits = count_hits(&reference, &rays, |t, r| t.closest_hit(r).is_some());
+            if reference_hits != hits {
+                eprintln!(
+                    "note: {}: raybatch hits {hits} rays, Embree {reference_hits}",
+                    scene.name
+                );
+            }
+            Some(TracerFigures {
+                build_s,
+                throughput: throughput(&reference, &rays, &options.threads, runs)?,
+            })
+        }
+        #[cfg(not(feature = "embree"))]
+        return Err("this build has no Embree backend (build with --features embree)".to_string());
+    } else {
+        None
+    };
+
+    Ok(SceneFigures {
+        name: scene.name,
+        triangles,
+        spheres,
+        rays: rays.len(),
+        hits,
+        load: scene.load,
+        peak_bytes_per_triangle,
+        raybatch,
+        embree,
+    })
+}
+
+fn count_hits<T: Tracer>(tracer: &T, rays: &[Ray], hit: impl Fn(&T, &Ray) -> bool + Sync) -> usize {
+    rays.par_chunks(4096)
+        .map(|chunk| chunk.iter().filter(|r| hit(tracer, r)).count())
+        .sum()
+}
+
+fn throughput<T: Tracer>(
+    tracer: &T,
+    rays: &[Ray],
+    threads: &[usize],
+    runs: usize,
+) -> Result<Vec<Throughput>, String> {
+    let mut out = Vec::new();
+    for &n in threads {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .map_err(|e| e.to_string())?;
+        let rate = |query: &(dyn Fn(&T, &Ray) -> bool + Sync)| {
+            let seconds = median(runs, || {
+                pool.install(|| std::hint::black_box(count_hits(tracer, rays, query)));
+            });
+            rays.len() as f64 / seconds / 1e6
+        };
+        out.push(Throughput {
+            threads: n,
+            closest: rate(&|t, r| t.closest_hit(r).is_some()),
+            any: rate(&|t, r| t.any_hit(r)),
+        });
+    }
+    Ok(out)
+}
+
+/// The median duration of `runs` calls, in seconds (after one warm-up call).
+pub fn median(runs: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut times: Vec<f64> = (0..runs.max(1))
+        .map(|_| {
+            let start = Instant::now();
+            f();
+            start.elapsed().as_secs_f64()
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
+
+/// `count` small manifests sharing one mesh, rendered as one batch (the mesh is read and
+/// its tree built once per job, from the batch's mesh cache).
+fn batch_of_small_jobs(temp: &Path, count: usize) -> Result<JobFigures, String> {
+    let folder = temp.join("batch");
+    std::fs::create_dir_all(&folder).map_err(|e| e.to_string())?;
+    let mesh = folder.join("ico.obj");
+    std::fs::write(
+        &mesh,
+        crate::procedural::to_obj(&crate::procedural::icosphere(4), ""),
+    )
+    .map_err(|e| e.to_string())?;
+    let integrators = ["hit", "depth", "normal"];
+    for i in 0..count {
+        let a = i as f64 * 0.37;
+        let manifest = format!(
+            r#"{{"image": {{"width": 160, "height": 120}}, "output": "job{i:03}.ppm",
+                "camera": {{"look_from": [{}, 1.2, {}], "look_at": [0, 0, 0], "vfov": 50}},
+                "integrator": {{"type": "{}"}},
+                "spheres": [{{"center": [1.5, 0, 0], "radius": 0.4}}],
+                "planes": [{{"point": [0, -1, 0], "normal": [0, 1, 0]}}],
+                "meshes": [{{"file": "ico.obj"}}]}}"#,
+            3.0 * a.cos(),
+            3.0 * a.sin(),
+            integrators[i % 3]
+        );
+        std::fs::write(folder.join(format!("job{i:03}.json")), manifest)
+            .map_err(|e| e.to_string())?;
+    }
+    let manifests = crate::job::manifests_in(&folder).map_err(|e| e.to_string())?;
+    let seconds = median(3, || {
+        let mut batch = Batch::new(JobOptions::default());
+        for manifest in &manifests {
+            let report = batch.run(manifest, &|_| {});
+            assert!(report.ok(), "{:?}", report.error);
+        }
+    });
+    Ok(JobFigures {
+        name: format!("batch of {count} small jobs (160x120, shared mesh)"),
+        jobs: count,
+        seconds,
+    })
+}
+
+fn canonical_job(temp: &Path) -> Result<JobFigures, String> {
+    let manifest = temp.join("canonical.json");
+    std::fs::write(
+        &manifest,
+        r#"{"image": {"width": 640, "height": 480}, "spheres": [{"center": [0, 0, 3], "radius": 1}]}"#,
+    )
+    .map_err(|e| e.to_string())?;
+    let seconds = median(5, || {
+        let report = Batch::new(JobOptions::default()).run(&manifest, &|_| {});
+        assert!(report.ok(), "{:?}", report.error);
+    });
+    Ok(JobFigures {
+        name: "canonical job (640x480, load + build + render + write)".to_string(),
+        jobs: 1,
+        seconds,
+    })
+}
+
+/// Resets the process's peak resident size and returns the current one, in bytes.
+fn reset_peak_memory() -> Option<u64> {
+    std::fs::write("/proc/self/clear_refs", "5").ok()?;
+    status_kb("VmRSS:").map(|kb| kb * 1024)
+}
+
+/// The process's peak resident size since the last reset, in bytes.
+fn peak_memory() -> Option<u64> {
+    status_kb("VmHWM:").map(|kb| kb * 1024)
+}
+
+fn status_kb(key: &str) -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with(key))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// The CPU's model name (Linux), for reports.
+pub fn cpu_name() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|info| {
+            info.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".to_string())
+}
+
+impl BenchReport {
+    pub fn to_json(&self) -> serde_json::Value {
+        let tracer = |t: &TracerFigures| {
+            json!({
+                "build_s": t.build_s,
+                "throughput": t.throughput.iter().map(|x| json!({
+                    "threads": x.threads, "closest_mrays": x.closest, "any_mrays": x.any
+                })).collect::<Vec<_>>(),
+            })
+        };
+        json!({
+            "cpu": cpu_name(),
+            "scenes": self.scenes.iter().map(|s| json!({
+                "name": s.name, "triangles": s.triangles, "spheres": s.spheres, "rays": s.rays,
+                "hits": s.hits,
+                "load_s": s.load.map(|l| l.0), "load_mb_per_s": s.load.map(|l| l.1),
+                "peak_bytes_per_triangle": s.peak_bytes_per_triangle,
+                "raybatch": tracer(&s.raybatch),
+                "embree": s.embree.as_ref().map(tracer),
+            })).collect::<Vec<_>>(),
+            "jobs": self.jobs.iter().map(|j| json!({
+                "name": j.name, "jobs": j.jobs, "seconds": j.seconds,
+            })).collect::<Vec<_>>(),
+        })
+    }
+
+    /// Markdown tables, as BENCHMARKS.md shows them.
+    pub fn to_markdown(&self) -> String {
+        use std::fmt::Write;
+        let mut out = String::new();
+        let with_embree = self.scenes.iter().any(|s| s.embree.is_some());
+        let _ = writeln!(
+            out,
+            "| scene | primitives | rays | threads | closest Mrays/s | any Mrays/s |{}",
+            if with_embree {
+                " Embree closest | Embree any | closest ratio |"
+            } else {
+                ""
+            }
+        );
+        let _ = writeln!(
+            out,
+            "|---|---:|---:|---:|---:|---:|{}",
+            if with_embree { "---:|---:|---:|" } else { "" }
+        );
+        for s in &self.scenes {
+            let primitives = if s.triangles > 0 {
+                format!("{} triangles", s.triangles)
+            } else {
+                format!("{} spheres", s.spheres)
+            };
+            for (i, t) in s.raybatch.throughput.iter().enumerate() {
+                let _ = write!(
+                    out,
+                    "| {} | {} | {} | {} | {:.2} | {:.2} |",
+                    s.name, primitives, s.rays, t.threads, t.closest, t.any
+                );
+                if let Some(e) = s.embree.as_ref().and_then(|e| e.throughput.get(i)) {
+                    let _ = write!(
+                        out,
+                        " {:.2} | {:.2} | {:.2}x |",
+                        e.closest,
+                        e.any,
+                        t.closest / e.closest
+                    );
+                }
+                out.push('\n');
+            }
+        }
+        let _ = writeln!(out);
+        let _ = writeln!(
+            out,
+            "| scene | build s | Embree build s | load s | load MB/s | peak bytes/triangle |"
+        );
+        let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
+        for s in &self.scenes {
+            let _ = writeln!(
+                out,
+                "| {} | {:.3} | {} | {} | {} | {} |",
+                s.name,
+                s.raybatch.build_s,
+                s.embree
+                    .as_ref()
+                    .map_or("-".to_string(), |e| format!("{:.3}", e.build_s)),
+                s.load.map_or("-".to_string(), |l| format!("{:.3}", l.0)),
+                s.load.map_or("-".to_string(), |l| format!("{:.0}", l.1)),
+                s.peak_bytes_per_triangle
+                    .map_or("-".to_string(), |b| format!("{b:.0}")),
+            );
+        }
+        let _ = writeln!(out);
+        let _ = writeln!(out, "| job | jobs | seconds | per job ms |");
+        let _ = writeln!(out, "|---|---:|---:|---:|");
+        for j in &self.jobs {
+            let _ = writeln!(
+                out,
+                "| {} | {} | {:.3} | {:.2} |",
+                j.name,
+                j.jobs,
+                j.seconds,
+                1e3 * j.seconds / j.jobs as f64
+            );
+        }
+        out
+    }
+}

@@ -1,0 +1,446 @@
+//! AVX2 kernels for the float32 triangle tree, chosen at run time
+//! (`is_x86_feature_detected!`, never `-C target-cpu`): the 8-wide slab test of a node, the
+//! 4-wide watertight test of a triangle block, and the closest-hit and any-hit traversals
+//! built on them.
+//!
+//! Every arithmetic operation is the scalar path's ([`crate::bvh::intersect_node`],
+//! [`crate::triangle::intersect`]), in the same order and without fused multiply-add, so
+//! both paths return bit-identical hits and an image does not depend on the CPU it was
+//! rendered on. Trees deeper than the inline stack allows are left to the scalar path.
+
+use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
+
+use crate::bvh::{BoxRay, Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit, edge_functions_f64};
+
+/// Stack entries of the AVX2 traversals; trees that may need more use the scalar path.
+pub const STACK: usize = 256;
+
+/// Whether this CPU can run the kernels.
+pub fn available() -> bool {
+    is_x86_feature_detected!("avx2")
+}
+
+/// A ray's constants, broadcast once.
+struct Lanes {
+    origin: [__m256; 3],
+    inv_dir: [__m256; 3],
+    inv_dir_far: [__m256; 3],
+    /// Offsets, in floats from a node's start, of each axis's near and far planes.
+    near: [usize; 3],
+    far: [usize; 3],
+    tmin8: __m256,
+    // The watertight test, four lanes at a time.
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    o4: [__m128; 3],
+    sx: __m128,
+    sy: __m128,
+    sz: __m128,
+    tmin4: __m128,
+}
+
+// The helpers below are `#[inline(always)] unsafe fn` without `#[target_feature]` (the two
+// cannot be combined): they are called only from the AVX2 traversals, into which they and
+// their intrinsics inline.
+
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn lanes(sheared: &ShearedRay, boxes: &BoxRay<f32>) -> Lanes {
+    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        Lanes {
+            origin: boxes.origin.map(|o| _mm256_set1_ps(o)),
+            inv_dir: boxes.inv_dir.map(|d| _mm256_set1_ps(d)),
+            inv_dir_far: boxes.inv_dir_far.map(|d| _mm256_set1_ps(d)),
+            near: [0, 1, 2].map(|a| offset(boxes.near[a], a)),
+            far: [0, 1, 2].map(|a| offset(1 - boxes.near[a], a)),
+            tmin8: _mm256_set1_ps(boxes.tmin),
+            kx: sheared.kx,
+            ky: sheared.ky,
+            kz: sheared.kz,
+            o4: sheared.origin.map(|o| _mm_set1_ps(o)),
+            sx: _mm_set1_ps(sheared.sx),
+            sy: _mm_set1_ps(sheared.sy),
+            sz: _mm_set1_ps(sheared.sz),
+            tmin4: _mm_set1_ps(boxes.tmin),
+        }
+    }
+}
+
+/// The slab test of all eight children: a hit bit per child and the entry distances.
+/// Operand order matters: `max(a, b)` returns `b` when `a` is NaN, as the scalar test's
+/// NaN-ignoring `max_keep(a, b)` does.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) {
+    let planes = node.planes.as_ptr().cast::<f32>();
+    // SAFETY: the offsets are below 6 × 8 floats, and nodes are 64-byte aligned so every
+    // 8-float plane starts on a 32-byte boundary; AVX2 is enabled in the caller.
+    unsafe {
+        let slab = |offset: usize, axis: usize, inv: __m256| {
+            _mm256_mul_ps(
+                _mm256_sub_ps(_mm256_load_ps(planes.add(offset)), r.origin[axis]),
+                inv,
+            )
+        };
+        let nx = slab(r.near[0], 0, r.inv_dir[0]);
+        let ny = slab(r.near[1], 1, r.inv_dir[1]);
+        let nz = slab(r.near[2], 2, r.inv_dir[2]);
+        let fx = slab(r.far[0], 0, r.inv_dir_far[0]);
+        let fy = slab(r.far[1], 1, r.inv_dir_far[1]);
+        let fz = slab(r.far[2], 2, r.inv_dir_far[2]);
+        let enter = _mm256_max_ps(nx, _mm256_max_ps(ny, _mm256_max_ps(nz, r.tmin8)));
+        let exit = _mm256_min_ps(fx, _mm256_min_ps(fy, _mm256_min_ps(fz, tmax)));
+        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit);
+        (_mm256_movemask_ps(hit) as u32, enter)
+    }
+}
+
+/// The watertight test of a block's four triangles: a bit per lane with
+/// `tmin < t < tmax`, and the lanes' distance, edge functions and determinant (meaningless
+/// where the bit is clear).
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn block_test(block: &TriangleBlock, r: &Lanes, tmax: __m128) -> (u32, BlockHits) {
+    // SAFETY: blocks are 16-byte aligned and each lane array is 16 bytes at a multiple
+    // of 16; AVX2 (and so SSE) is enabled in the caller.
+    unsafe {
+        let load = |vertex: usize, axis: usize| _mm_load_ps(block.v[vertex][axis].as_ptr());
+        let relative = |vertex: usize, axis: usize| _mm_sub_ps(load(vertex, axis), r.o4[axis]);
+        let (kx, ky, kz) = (r.kx, r.ky, r.kz);
+        let (az, bz, cz) = (relative(0, kz), relative(1, kz), relative(2, kz));
+        let shear = |v: usize, axis: usize, s: __m128, z: __m128| {
+            _mm_sub_ps(relative(v, axis), _mm_mul_ps(s, z))
+        };
+        let (ax, ay) = (shear(0, kx, r.sx, az), shear(0, ky, r.sy, az));
+        let (bx, by) = (shear(1, kx, r.sx, bz), shear(1, ky, r.sy, bz));
+        let (cx, cy) = (shear(2, kx, r.sx, cz), shear(2, ky, r.sy, cz));
+        let mut u = _mm_sub_ps(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx));
+        let mut v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
+        let mut w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
+
+        let zero = _mm_setzero_ps();
+        let any_zero = |a, b, c| {
+            _mm_or_ps(
+                _mm_cmpeq_ps(a, zero),
+                _mm_or_ps(_mm_cmpeq_ps(b, zero), _mm_cmpeq_ps(c, zero)),
+            )
+        };
+        let on_edge = any_zero(u, v, w);
+        if _mm_movemask_ps(on_edge) != 0 {
+            (u, v, w) = exact_edges(on_edge, [ax, ay, bx, by, cx, cy], (u, v, w));
+        }
+
+        let negative = _mm_or_ps(
+            _mm_cmplt_ps(u, zero),
+            _mm_or_ps(_mm_cmplt_ps(v, zero), _mm_cmplt_ps(w, zero)),
+        );
+        let positive = _mm_or_ps(
+            _mm_cmpgt_ps(u, zero),
+            _mm_or_ps(_mm_cmpgt_ps(v, zero), _mm_cmpgt_ps(w, zero)),
+        );
+        let det = _mm_add_ps(_mm_add_ps(u, v), w);
+        let t_scaled = _mm_add_ps(
+            _mm_add_ps(
+                _mm_mul_ps(u, _mm_mul_ps(r.sz, az)),
+                _mm_mul_ps(v, _mm_mul_ps(r.sz, bz)),
+            ),
+            _mm_mul_ps(w, _mm_mul_ps(r.sz, cz)),
+        );
+        let t = _mm_div_ps(t_scaled, det);
+        let inside = _mm_andnot_ps(_mm_and_ps(negative, positive), _mm_cmpneq_ps(det, zero));
+        let in_range = _mm_and_ps(_mm_cmpgt_ps(t, r.tmin4), _mm_cmplt_ps(t, tmax));
+        let mask = _mm_movemask_ps(_mm_and_ps(inside, in_range)) as u32;
+        (mask, BlockHits { t, u, v, w, det })
+    }
+}
+
+/// A block test's per-lane values.
+struct BlockHits {
+    t: __m128,
+    u: __m128,
+    v: __m128,
+    w: __m128,
+    det: __m128,
+}
+
+impl BlockHits {
+    /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
+    #[inline(always)]
+    fn hit(&self, lane: usize) -> TriangleHit {
+        let get = |x: __m128| {
+            let mut out = [0f32; 4];
+            // SAFETY: `out` holds four floats; SSE is part of x86-64.
+            unsafe { _mm_storeu_ps(out.as_mut_ptr(), x) };
+            out[lane]
+        };
+        let (u, v, w, det) = (get(self.u), get(self.v), get(self.w), get(self.det));
+        TriangleHit {
+            t: get(self.t),
+            b0: u / det,
+            b1: v / det,
+            b2: w / det,
+        }
+    }
+}
+
+/// The float64 recomputation of the edge functions, for the lanes where one is exactly 0.
+#[cold]
+#[inline(never)]
+fn exact_edges(
+    on_edge: __m128,
+    sheared: [__m128; 6],
+    (u, v, w): (__m128, __m128, __m128),
+) -> (__m128, __m128, __m128) {
+    let unpack = |x: __m128| {
+        let mut out = [0f32; 4];
+        // SAFETY: `out` holds four floats.
+        unsafe { _mm_storeu_ps(out.as_mut_ptr(), x) };
+        out
+    };
+    let mask = unpack(on_edge);
+    let [ax, ay, bx, by, cx, cy] = sheared.map(unpack);
+    let (mut u, mut v, mut w) = (unpack(u), unpack(v), unpack(w));
+    for lane in 0..BLOCK {
+        if mask[lane].to_bits() != 0 {
+            (u[lane], v[lane], w[lane]) =
+                edge_functions_f64(ax[lane], ay[lane], bx[lane], by[lane], cx[lane], cy[lane]);
+        }
+    }
+    // SAFETY: each array holds four floats.
+    unsafe {
+        (
+            _mm_loadu_ps(u.as_ptr()),
+            _mm_loadu_ps(v.as_ptr()),
+            _mm_loadu_ps(w.as_ptr()),
+        )
+    }
+}
+
+/// A stack entry: `(entry distance, child)` in a `u64`, distance in the high half.
+/// Distances are never negative, so integer order is the order of `(distance, child)`,
+/// the order in which both the scalar and the AVX2 traversals visit children.
+#[inline(always)]
+fn pack(distance: f32, child: u32) -> u64 {
+    (u64::from(distance.to_bits()) << 32) | u64::from(child)
+}
+
+#[inline(always)]
+fn distance(entry: u64) -> f32 {
+    f32::from_bits((entry >> 32) as u32)
+}
+
+/// Closest-hit traversal of the triangle tree: the nearest hit with `tmin < t < tmax`
+/// (the rounded ray's bounds in `boxes` and `tmax`), under the tie rule of [`Nearest`].
+///
+/// # Safety
+/// The CPU must support AVX2 ([`available`]).
+#[target_feature(enable = "avx2")]
+pub unsafe fn closest(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    sheared: &ShearedRay,
+    boxes: &BoxRay<f32>,
+    tmax: f32,
+) -> Option<(Nearest, TriangleHit)> {
+    assert!(
+        bvh.stack_bound() <= STACK,
+        "the scalar path handles deeper trees"
+    );
+    let nodes = bvh.nodes();
+    if nodes.is_empty() {
+        return None;
+    }
+    // SAFETY (for every helper called below): AVX2 is enabled in this function.
+    let r = unsafe { lanes(sheared, boxes) };
+    let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
+    let mut sp = 0usize;
+    let mut nearest = Nearest::before(tmax);
+    let mut found = None;
+    // Boxes are kept when entered at or before the nearest hit (ties may still win), and
+    // triangles tested up to it inclusive: `t < next_up(nearest.t)`.
+    let mut t_box = _mm256_set1_ps(nearest.t);
+    let mut t_tri = _mm_set1_ps(nearest.t.next_up());
+    let mut current = 0u32;
+    'trace: loop {
+        // Down the tree until a leaf, or until no child is entered.
+        let reached_leaf = loop {
+            if current & LEAF != 0 {
+                break true;
+            }
+            let node = &nodes[current as usize];
+            let (mask, enter) = unsafe { node_test(node, &r, t_box) };
+            if mask == 0 {
+                break false;
+            }
+            let first = mask.trailing_zeros() as usize;
+            let rest = mask & (mask - 1);
+            current = node.children[first];
+            prefetch(nodes, blocks, current);
+            if rest == 0 {
+                continue;
+            }
+            let mut entries = [0f32; WIDTH];
+            // SAFETY: `entries` holds eight floats.
+            unsafe { _mm256_storeu_ps(entries.as_mut_ptr(), enter) };
+            let second = rest.trailing_zeros() as usize;
+            let a = pack(entries[first], current);
+            let b = pack(entries[second], node.children[second]);
+            prefetch(nodes, blocks, b as u32);
+            if rest & (rest - 1) == 0 {
+                // Two children: visit the nearer, push the farther.
+                let (near, far) = if a <= b { (a, b) } else { (b, a) };
+                stack[sp] = MaybeUninit::new(far);
+                sp += 1;
+                current = near as u32;
+                continue;
+            }
+            // More: insert them all into a run on the stack, farthest first, and take the
+            // nearest back off its top.
+            let base = sp;
+            let mut m = mask;
+            while m != 0 {
+                let i = m.trailing_zeros() as usize;
+                m &= m - 1;
+                let key = pack(entries[i], node.children[i]);
+                let mut j = sp;
+                // SAFETY: slots `base..sp` were written by this loop.
+                while j > base && unsafe { stack[j - 1].assume_init() } < key {
+                    stack[j] = stack[j - 1];
+                    j -= 1;
+                }
+                stack[j] = MaybeUninit::new(key);
+                sp += 1;
+            }
+            sp -= 1;
+            // SAFETY: written above.
+            current = unsafe { stack[sp].assume_init() } as u32;
+        };
+        let (first, count) = if reached_leaf {
+            leaf_range(current)
+        } else {
+            (0, 0)
+        };
+        for b in first..first + count {
+            let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &r, t_tri) };
+            if mask != 0 {
+                let mut t = [0f32; 4];
+                // SAFETY: `t` holds four floats.
+                unsafe { _mm_storeu_ps(t.as_mut_ptr(), lanes.t) };
+                let mut m = mask;
+                while m != 0 {
+                    let lane = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let slot = b * BLOCK as u32 + lane as u32;
+                    if nearest.improves(t[lane], slot) {
+                        nearest = Nearest { t: t[lane], slot };
+                        found = Some(lanes.hit(lane));
+                    }
+                }
+                t_box = _mm256_set1_ps(nearest.t);
+                t_tri = _mm_set1_ps(nearest.t.next_up());
+            }
+        }
+        // Pop the next entry that may still hold something as near.
+        loop {
+            if sp == 0 {
+                break 'trace;
+            }
+            sp -= 1;
+            // SAFETY: every slot below `sp` was written above.
+            let entry = unsafe { stack[sp].assume_init() };
+            if distance(entry) <= nearest.t {
+                current = entry as u32;
+                continue 'trace;
+            }
+        }
+    }
+    found.map(|hit| (nearest, hit))
+}
+
+/// Asks for the first cache lines of a node or a leaf's first block.
+#[inline(always)]
+fn prefetch(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: u32) {
+    let line: *const i8 = if child & LEAF == 0 {
+        nodes.as_ptr().wrapping_add(child as usize).cast()
+    } else {
+        blocks
+            .as_ptr()
+            .wrapping_add(leaf_range(child).0 as usize)
+            .cast()
+    };
+    // SAFETY: prefetching never faults, whatever the address.
+    unsafe {
+        _mm_prefetch::<_MM_HINT_T0>(line);
+        _mm_prefetch::<_MM_HINT_T0>(line.wrapping_add(64));
+        _mm_prefetch::<_MM_HINT_T0>(line.wrapping_add(128));
+    }
+}
+
+/// Any-hit traversal: whether some triangle has `tmin < t < tmax`.
+///
+/// # Safety
+/// As for [`closest`].
+#[target_feature(enable = "avx2")]
+pub unsafe fn any(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    sheared: &ShearedRay,
+    boxes: &BoxRay<f32>,
+    tmax: f32,
+) -> bool {
+    assert!(
+        bvh.stack_bound() <= STACK,
+        "the scalar path handles deeper trees"
+    );
+    let nodes = bvh.nodes();
+    if nodes.is_empty() {
+        return false;
+    }
+    // SAFETY (for every helper called below): AVX2 is enabled in this function.
+    let r = unsafe { lanes(sheared, boxes) };
+    let t_far = _mm256_set1_ps(tmax);
+    let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
+    let mut sp = 0usize;
+    let mut current = 0u32;
+    loop {
+        if current & LEAF != 0 {
+            let (first, count) = leaf_range(current);
+            let t_tri = _mm_set1_ps(tmax);
+            for b in first..first + count {
+                if unsafe { block_test(&blocks[b as usize], &r, t_tri) }.0 != 0 {
+                    return true;
+                }
+            }
+        } else {
+            let node = &nodes[current as usize];
+            let (mut mask, _) = unsafe { node_test(node, &r, t_far) };
+            if mask != 0 {
+                let first = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                while mask != 0 {
+                    stack[sp] = MaybeUninit::new(node.children[mask.trailing_zeros() as usize]);
+                    sp += 1;
+                    mask &= mask - 1;
+                }
+                current = node.children[first];
+                continue;
+            }
+        }
+        if sp == 0 {
+            return false;
+        }
+        sp -= 1;
+        // SAFETY: every slot below `sp` was written above.
+        current = unsafe { stack[sp].assume_init() };
+    }
+}
