@@ -188,6 +188,7 @@ pub struct BoxRay<T> {
 }
 
 impl<T: Scalar> BoxRay<T> {
+    #[inline(always)]
     pub fn new(origin: [T; 3], direction: [T; 3], tmin: T) -> BoxRay<T> {
         let inv_dir = direction.map(Scalar::recip);
         BoxRay {

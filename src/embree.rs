@@ -118,6 +118,27 @@ impl EmbreeScene {
         })
     }
 
+    /// Our hit for Embree's answer to a query.
+    fn hit_of(&self, query: &RayHit) -> Option<Hit> {
+        let hit = query.hit;
+        if hit.geomID == INVALID {
+            return None;
+        }
+        let primitive = if Some(hit.geomID) == self.sphere_geometry {
+            Primitive::Sphere(hit.primID)
+        } else {
+            Primitive::Triangle {
+                slot: hit.primID,
+                b1: hit.u,
+                b2: hit.v,
+            }
+        };
+        Some(Hit {
+            t: f64::from(query.ray.tfar),
+            primitive,
+        })
+    }
+
     /// Embree's ray for `(tmin, tmax)`: float32, bounds one step inside the interval.
     fn embree_ray(ray: &Ray, tmax: f64) -> embree3::Ray {
         let tnear = f32_at_most(ray.tmin).next_up();
@@ -141,21 +162,54 @@ impl Tracer for EmbreeScene {
         let mut query = RayHit::from_ray(Self::embree_ray(ray, tmax));
         self.scene
             .intersect(&mut IntersectContext::incoherent(), &mut query);
-        let hit = query.hit;
-        if hit.geomID == INVALID {
-            return plane;
+        self.hit_of(&query).or(plane)
+    }
+
+    /// Embree's coherent stream API (`rtcIntersect1M`) over all the rays at once.
+    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        for (ray, out) in rays.iter().zip(out.iter_mut()) {
+            *out = nearest_plane(&self.planes, ray);
         }
-        let t = f64::from(query.ray.tfar);
-        let primitive = if Some(hit.geomID) == self.sphere_geometry {
-            Primitive::Sphere(hit.primID)
-        } else {
-            Primitive::Triangle {
-                slot: hit.primID,
-                b1: hit.u,
-                b2: hit.v,
+        if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
+            return;
+        }
+        let mut stream: Vec<RayHit> = rays
+            .iter()
+            .zip(out.iter())
+            .map(|(ray, plane)| {
+                RayHit::from_ray(Self::embree_ray(ray, plane.map_or(ray.tmax, |h| h.t)))
+            })
+            .collect();
+        self.scene
+            .intersect_stream_aos(&mut IntersectContext::coherent(), &mut stream);
+        for (query, out) in stream.iter().zip(out.iter_mut()) {
+            if let Some(hit) = self.hit_of(query) {
+                *out = Some(hit);
             }
-        };
-        Some(Hit { t, primitive })
+        }
+    }
+
+    /// Embree's coherent stream API (`rtcOccluded1M`) over all the rays at once.
+    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        for (ray, out) in rays.iter().zip(out.iter_mut()) {
+            *out = self
+                .planes
+                .iter()
+                .any(|p| p.intersect(ray, ray.tmax).is_some());
+        }
+        if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
+            return;
+        }
+        let mut stream: Vec<embree3::Ray> = rays
+            .iter()
+            .map(|ray| Self::embree_ray(ray, ray.tmax))
+            .collect();
+        self.scene
+            .occluded_stream_aos(&mut IntersectContext::coherent(), &mut stream);
+        for (ray, out) in stream.iter().zip(out.iter_mut()) {
+            // Embree marks an occluded ray by setting its tfar to −∞.
+            *out |= ray.tfar == f32::NEG_INFINITY;
+        }
     }
 
     fn any_hit(&self, ray: &Ray) -> bool {

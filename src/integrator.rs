@@ -9,11 +9,29 @@
 
 use crate::manifest::Rgb;
 use crate::ray::Ray;
-use crate::scene::Tracer;
+use crate::scene::{Hit, Tracer};
 
 /// The value of one camera ray (linear RGB), traced by any [`Tracer`].
 pub trait Integrator: Sync {
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb;
+
+    /// The values of many camera rays, `out[i]` for `rays[i]`: the same as [`value`] for
+    /// each, but integrators that ask one query per ray ask them all at once, so that the
+    /// tracer can trace coherent rays together.
+    ///
+    /// [`value`]: Integrator::value
+    fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
+        for (ray, out) in rays.iter().zip(out) {
+            *out = self.value(scene, ray);
+        }
+    }
+}
+
+/// The closest hits of a batch of rays, in a buffer sized for one render packet.
+fn closest_hits<T: Tracer>(scene: &T, rays: &[Ray]) -> Vec<Option<Hit>> {
+    let mut hits = vec![None; rays.len()];
+    scene.closest_hits(rays, &mut hits);
+    hits
 }
 
 /// `hit`: `[1, 1, 1]` where the ray hits anything, else the background. An any-hit
@@ -41,12 +59,24 @@ pub struct DepthIntegrator {
     pub background: Rgb,
 }
 
+impl DepthIntegrator {
+    fn of(&self, hit: Option<Hit>) -> Rgb {
+        match hit {
+            Some(hit) => [hit.t / self.scale; 3],
+            None => self.background,
+        }
+    }
+}
+
 impl Integrator for DepthIntegrator {
     #[inline]
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
-        match scene.closest_hit(ray) {
-            Some(hit) => [hit.t / self.scale; 3],
-            None => self.background,
+        self.of(scene.closest_hit(ray))
+    }
+
+    fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
+        for (out, hit) in out.iter_mut().zip(closest_hits(scene, rays)) {
+            *out = self.of(hit);
         }
     }
 }
@@ -58,15 +88,27 @@ pub struct NormalIntegrator {
     pub background: Rgb,
 }
 
-impl Integrator for NormalIntegrator {
-    #[inline]
-    fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
-        match scene.closest_hit(ray) {
+impl NormalIntegrator {
+    fn of<T: Tracer>(&self, scene: &T, ray: &Ray, hit: Option<Hit>) -> Rgb {
+        match hit {
             Some(hit) => {
                 let n = scene.normal(ray, &hit);
                 [0.5 * (n.x + 1.0), 0.5 * (n.y + 1.0), 0.5 * (n.z + 1.0)]
             }
             None => self.background,
+        }
+    }
+}
+
+impl Integrator for NormalIntegrator {
+    #[inline]
+    fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
+        self.of(scene, ray, scene.closest_hit(ray))
+    }
+
+    fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
+        for ((out, hit), ray) in out.iter_mut().zip(closest_hits(scene, rays)).zip(rays) {
+            *out = self.of(scene, ray, hit);
         }
     }
 }

@@ -36,6 +36,8 @@ pub mod job;
 pub mod manifest;
 pub mod mesh;
 pub mod obj;
+#[cfg(target_arch = "x86_64")]
+pub mod packet;
 pub mod plane;
 pub mod procedural;
 pub mod ray;

@@ -108,7 +108,12 @@ pub fn render<T: Tracer>(
     Ok(image)
 }
 
-/// Renders every pixel of `image` with one integrator, specialized at compile time.
+/// Side of the square groups of pixels whose rays are traced together (one packet).
+pub const PACKET_SIDE: u32 = 8;
+
+/// Renders every pixel of `image` with one integrator, specialized at compile time. Rays
+/// go to the integrator one packet at a time: the same sample of an 8 × 8 group of
+/// pixels, so that they are coherent.
 pub fn render_with<T: Tracer, I: Integrator>(
     scene: &T,
     integrator: &I,
@@ -118,21 +123,29 @@ pub fn render_with<T: Tracer, I: Integrator>(
 ) {
     let width = image.width;
     let spp = view.sampler.spp();
+    const GROUP: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
     image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
         let rows = band.rows();
-        for x0 in (0..width).step_by(TILE as usize) {
-            for dy in 0..rows {
-                let y = band.y0 + dy;
-                for x in x0..(x0 + TILE).min(width) {
-                    let mut sum = [0.0f64; 3];
-                    for s in 0..spp {
-                        let value = integrator.value(scene, &view.ray(x, y, s));
+        let mut rays = Vec::with_capacity(GROUP);
+        let mut values = vec![[0.0f64; 3]; GROUP];
+        for x0 in (0..width).step_by(PACKET_SIDE as usize) {
+            for dy0 in (0..rows).step_by(PACKET_SIDE as usize) {
+                let pixels: Vec<(u32, u32)> = (dy0..(dy0 + PACKET_SIDE).min(rows))
+                    .flat_map(|dy| (x0..(x0 + PACKET_SIDE).min(width)).map(move |x| (x, dy)))
+                    .collect();
+                let mut sums = vec![[0.0f64; 3]; pixels.len()];
+                for s in 0..spp {
+                    rays.clear();
+                    rays.extend(pixels.iter().map(|&(x, dy)| view.ray(x, band.y0 + dy, s)));
+                    integrator.values(scene, &rays, &mut values[..rays.len()]);
+                    for (sum, value) in sums.iter_mut().zip(&values) {
                         for c in 0..3 {
                             sum[c] += value[c];
                         }
                     }
-                    let mean = sum.map(|c| c / f64::from(spp));
-                    band.set(x, dy, mean);
+                }
+                for (&(x, dy), sum) in pixels.iter().zip(&sums) {
+                    band.set(x, dy, sum.map(|c| c / f64::from(spp)));
                 }
             }
         }

@@ -138,6 +138,21 @@ pub trait Tracer: Sync {
     /// Whether anything is hit with `ray.tmin < t < ray.tmax`.
     fn any_hit(&self, ray: &Ray) -> bool;
 
+    /// [`Tracer::closest_hit`] of every ray: `out[i]` for `rays[i]`. Tracers may trace
+    /// coherent runs of rays (neighbouring camera rays) together; results are the same.
+    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        for (ray, out) in rays.iter().zip(out) {
+            *out = self.closest_hit(ray);
+        }
+    }
+
+    /// [`Tracer::any_hit`] of every ray: `out[i]` for `rays[i]`.
+    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        for (ray, out) in rays.iter().zip(out) {
+            *out = self.any_hit(ray);
+        }
+    }
+
     /// The unit geometric normal at a hit this tracer returned, not flipped toward the
     /// ray: a sphere's `(p − c)/r`, a plane's normal, a triangle's
     /// `normalize(cross(v1 − v0, v2 − v0))`.
@@ -235,6 +250,30 @@ impl Scene {
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
     #[inline]
     pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        let mut best = self.closest_analytic(ray);
+        if !self.triangle_bvh.is_empty() {
+            let r = TriangleRay::new(ray, best.map_or(ray.tmax, |h| h.t));
+            if let Some((nearest, hit)) = self.nearest_triangle(&r) {
+                best = Some(Self::triangle_hit(nearest, hit));
+            }
+        }
+        best
+    }
+
+    fn triangle_hit(nearest: Nearest, hit: TriangleHit) -> Hit {
+        Hit {
+            t: f64::from(nearest.t),
+            primitive: Primitive::Triangle {
+                slot: nearest.slot,
+                b1: hit.b1,
+                b2: hit.b2,
+            },
+        }
+    }
+
+    /// The closest plane or sphere hit.
+    #[inline(always)]
+    fn closest_analytic(&self, ray: &Ray) -> Option<Hit> {
         let mut best = nearest_plane(&self.planes, ray);
         let mut tmax = best.map_or(ray.tmax, |h| h.t);
         if !self.sphere_bvh.is_empty() {
@@ -252,20 +291,94 @@ impl Scene {
                     }
                 });
         }
-        if !self.triangle_bvh.is_empty() {
-            let r = TriangleRay::new(ray, tmax);
-            if let Some((nearest, hit)) = self.nearest_triangle(&r) {
-                best = Some(Hit {
-                    t: f64::from(nearest.t),
-                    primitive: Primitive::Triangle {
-                        slot: nearest.slot,
-                        b1: hit.b1,
-                        b2: hit.b2,
-                    },
-                });
+        best
+    }
+
+    /// [`Scene::closest_hit`] for many rays: `out[i]` receives ray `i`'s hit. Coherent
+    /// rays (neighbouring camera rays, in runs of up to [`crate::packet::PACKET`]) are
+    /// traced as packets where the CPU allows, which is much faster.
+    pub fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        assert_eq!(rays.len(), out.len());
+        for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
+            let mut prepared = [TriangleRay::EMPTY; PACKET];
+            for (k, ray) in rays.iter().enumerate() {
+                out[k] = self.closest_analytic(ray);
+                prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
+            }
+            if self.triangle_bvh.is_empty() {
+                continue;
+            }
+            let prepared = &prepared[..rays.len()];
+            let mut triangles = [None; PACKET];
+            let triangles = &mut triangles[..rays.len()];
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+            let traced = self.simd
+                && unsafe {
+                    crate::packet::closest(&self.triangle_bvh, &self.blocks, prepared, triangles)
+                };
+            #[cfg(not(target_arch = "x86_64"))]
+            let traced = false;
+            for (k, r) in prepared.iter().enumerate() {
+                let found = if traced {
+                    triangles[k]
+                } else {
+                    self.nearest_triangle(r)
+                };
+                if let Some((nearest, hit)) = found {
+                    out[k] = Some(Self::triangle_hit(nearest, hit));
+                }
             }
         }
-        best
+    }
+
+    /// Whether [`Scene::closest_hits`] traces these rays (at most one packet's worth) as a
+    /// packet rather than one by one: AVX2, and the same direction signs for all.
+    pub fn traces_as_packet(&self, rays: &[Ray]) -> bool {
+        let signs = |r: &Ray| r.direction.as_vec3().to_array().map(f32::is_sign_negative);
+        self.simd && rays.len() <= PACKET && rays.iter().all(|r| signs(r) == signs(&rays[0]))
+    }
+
+    /// [`Scene::any_hit`] for many rays: `out[i]` receives ray `i`'s answer, with coherent
+    /// runs traced as packets as in [`Scene::closest_hits`].
+    pub fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        assert_eq!(rays.len(), out.len());
+        for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
+            for (ray, out) in rays.iter().zip(out.iter_mut()) {
+                *out = self.any_analytic(ray);
+            }
+            if self.triangle_bvh.is_empty() {
+                continue;
+            }
+            #[cfg(target_arch = "x86_64")]
+            if self.simd {
+                let mut prepared = [TriangleRay::EMPTY; PACKET];
+                for (k, ray) in rays.iter().enumerate() {
+                    // A ray already hit needs no triangle: an empty interval.
+                    let tmax = if out[k] { f64::NEG_INFINITY } else { ray.tmax };
+                    prepared[k] = TriangleRay::new(ray, tmax);
+                }
+                let mut triangles = [false; PACKET];
+                let n = rays.len();
+                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+                if unsafe {
+                    crate::packet::any(
+                        &self.triangle_bvh,
+                        &self.blocks,
+                        &prepared[..n],
+                        &mut triangles[..n],
+                    )
+                } {
+                    for (out, hit) in out.iter_mut().zip(triangles) {
+                        *out |= hit;
+                    }
+                    continue;
+                }
+            }
+            for (ray, out) in rays.iter().zip(out.iter_mut()) {
+                *out = *out || self.any_triangle(&TriangleRay::new(ray, ray.tmax));
+            }
+        }
     }
 
     /// The nearest triangle hit of a rounded ray, through the AVX2 kernels when the scene
@@ -275,24 +388,17 @@ impl Scene {
         #[cfg(target_arch = "x86_64")]
         if self.simd {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            return unsafe {
-                crate::simd::closest(
-                    &self.triangle_bvh,
-                    &self.blocks,
-                    &r.sheared,
-                    &r.boxes,
-                    r.tmax,
-                )
-            };
+            return unsafe { crate::simd::closest(&self.triangle_bvh, &self.blocks, *r) };
         }
+        let (sheared, boxes) = (r.sheared(), r.boxes());
         let mut nearest = Nearest::before(r.tmax);
         let mut found = None;
         let mut tmax = r.tmax;
         self.triangle_bvh
-            .closest(&r.boxes, &mut tmax, |first, count, tmax| {
+            .closest(&boxes, &mut tmax, |first, count, tmax| {
                 for b in first..first + count {
                     if let Some(hit) =
-                        self.blocks[b as usize].intersect(&r.sheared, r.tmin, b, &mut nearest)
+                        self.blocks[b as usize].intersect(&sheared, r.tmin, b, &mut nearest)
                     {
                         found = Some(hit);
                     }
@@ -305,6 +411,14 @@ impl Scene {
     /// Whether anything is hit with `ray.tmin < t < ray.tmax`; stops at the first hit found.
     #[inline]
     pub fn any_hit(&self, ray: &Ray) -> bool {
+        self.any_analytic(ray)
+            || (!self.triangle_bvh.is_empty()
+                && self.any_triangle(&TriangleRay::new(ray, ray.tmax)))
+    }
+
+    /// Whether a plane or a sphere is hit.
+    #[inline(always)]
+    fn any_analytic(&self, ray: &Ray) -> bool {
         if self
             .planes
             .iter()
@@ -312,41 +426,33 @@ impl Scene {
         {
             return true;
         }
-        if !self.sphere_bvh.is_empty() {
-            let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
-            let hit = self.sphere_bvh.any(&box_ray, ray.tmax, |first, count| {
-                (first..first + count)
-                    .any(|i| self.spheres[i as usize].intersect(ray, ray.tmax).is_some())
-            });
-            if hit {
-                return true;
-            }
+        if self.sphere_bvh.is_empty() {
+            return false;
         }
-        if !self.triangle_bvh.is_empty() {
-            let r = TriangleRay::new(ray, ray.tmax);
-            #[cfg(target_arch = "x86_64")]
-            if self.simd {
-                // SAFETY: as in `closest_hit`.
-                return unsafe {
-                    crate::simd::any(
-                        &self.triangle_bvh,
-                        &self.blocks,
-                        &r.sheared,
-                        &r.boxes,
-                        r.tmax,
-                    )
-                };
-            }
-            return self.triangle_bvh.any(&r.boxes, r.tmax, |first, count| {
-                (first..first + count).any(|b| {
-                    let mut nearest = Nearest::before(r.tmax);
-                    self.blocks[b as usize]
-                        .intersect(&r.sheared, r.tmin, b, &mut nearest)
-                        .is_some()
-                })
-            });
+        let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+        self.sphere_bvh.any(&box_ray, ray.tmax, |first, count| {
+            (first..first + count)
+                .any(|i| self.spheres[i as usize].intersect(ray, ray.tmax).is_some())
+        })
+    }
+
+    /// Whether a triangle is hit by a rounded ray.
+    #[inline(always)]
+    fn any_triangle(&self, r: &TriangleRay) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if self.simd {
+            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+            return unsafe { crate::simd::any(&self.triangle_bvh, &self.blocks, *r) };
         }
-        false
+        let (sheared, boxes) = (r.sheared(), r.boxes());
+        self.triangle_bvh.any(&boxes, r.tmax, |first, count| {
+            (first..first + count).any(|b| {
+                let mut nearest = Nearest::before(r.tmax);
+                self.blocks[b as usize]
+                    .intersect(&sheared, r.tmin, b, &mut nearest)
+                    .is_some()
+            })
+        })
     }
 
     /// The unit geometric normal at a hit, not flipped toward the ray: a sphere's
@@ -374,6 +480,14 @@ impl Tracer for Scene {
         Scene::closest_hit(self, ray)
     }
 
+    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        Scene::closest_hits(self, rays, out);
+    }
+
+    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        Scene::any_hits(self, rays, out);
+    }
+
     #[inline]
     fn any_hit(&self, ray: &Ray) -> bool {
         Scene::any_hit(self, ray)
@@ -394,9 +508,13 @@ impl Tracer for Scene {
 }
 
 #[cfg(target_arch = "x86_64")]
+use crate::packet::PACKET;
+#[cfg(target_arch = "x86_64")]
 use crate::simd::{STACK as SIMD_STACK, available as simd_available};
 #[cfg(not(target_arch = "x86_64"))]
 const SIMD_STACK: usize = 0;
+#[cfg(not(target_arch = "x86_64"))]
+const PACKET: usize = 64;
 #[cfg(not(target_arch = "x86_64"))]
 fn simd_available() -> bool {
     false
@@ -418,26 +536,44 @@ pub fn nearest_plane(planes: &[Plane], ray: &Ray) -> Option<Hit> {
     best
 }
 
-/// A float64 ray rounded for the float32 triangle path.
-struct TriangleRay {
-    sheared: ShearedRay,
-    boxes: BoxRay<f32>,
-    tmin: f32,
-    tmax: f32,
+/// A float64 ray rounded for the float32 triangle path: origin and direction to nearest,
+/// `tmin` down and `tmax` up.
+#[derive(Debug, Clone, Copy)]
+pub struct TriangleRay {
+    pub origin: [f32; 3],
+    pub direction: [f32; 3],
+    pub tmin: f32,
+    pub tmax: f32,
 }
 
 impl TriangleRay {
+    const EMPTY: TriangleRay = TriangleRay {
+        origin: [0.0; 3],
+        direction: [0.0, 0.0, 1.0],
+        tmin: 0.0,
+        tmax: 0.0,
+    };
+
     #[inline(always)]
     fn new(ray: &Ray, tmax: f64) -> TriangleRay {
-        let origin = ray.origin.as_vec3();
-        let direction = ray.direction.as_vec3();
-        let tmin = bvh::f32_at_most(ray.tmin);
         TriangleRay {
-            sheared: ShearedRay::new(origin, direction),
-            boxes: BoxRay::new(origin.to_array(), direction.to_array(), tmin),
-            tmin,
+            origin: ray.origin.as_vec3().to_array(),
+            direction: ray.direction.as_vec3().to_array(),
+            tmin: bvh::f32_at_most(ray.tmin),
             tmax: bvh::f32_at_least(tmax),
         }
+    }
+
+    /// The watertight test's view of the ray.
+    #[inline(always)]
+    pub fn sheared(&self) -> ShearedRay {
+        ShearedRay::new(Vec3::from(self.origin), Vec3::from(self.direction))
+    }
+
+    /// The box test's view of the ray.
+    #[inline(always)]
+    pub fn boxes(&self) -> BoxRay<f32> {
+        BoxRay::new(self.origin, self.direction, self.tmin)
     }
 }
 

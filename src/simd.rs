@@ -12,6 +12,7 @@ use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
 use crate::bvh::{BoxRay, Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::scene::TriangleRay;
 use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit, edge_functions_f64};
 
 /// Stack entries of the AVX2 traversals; trees that may need more use the scalar path.
@@ -31,7 +32,12 @@ struct Lanes {
     near: [usize; 3],
     far: [usize; 3],
     tmin8: __m256,
-    // The watertight test, four lanes at a time.
+    tri: TriLanes,
+}
+
+/// A ray's constants for the watertight test, four lanes at a time.
+#[derive(Clone, Copy)]
+pub(crate) struct TriLanes {
     kx: usize,
     ky: usize,
     kz: usize,
@@ -40,6 +46,25 @@ struct Lanes {
     sy: __m128,
     sz: __m128,
     tmin4: __m128,
+}
+
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes {
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        TriLanes {
+            kx: sheared.kx,
+            ky: sheared.ky,
+            kz: sheared.kz,
+            o4: sheared.origin.map(|o| _mm_set1_ps(o)),
+            sx: _mm_set1_ps(sheared.sx),
+            sy: _mm_set1_ps(sheared.sy),
+            sz: _mm_set1_ps(sheared.sz),
+            tmin4: _mm_set1_ps(tmin),
+        }
+    }
 }
 
 // The helpers below are `#[inline(always)] unsafe fn` without `#[target_feature]` (the two
@@ -60,14 +85,7 @@ unsafe fn lanes(sheared: &ShearedRay, boxes: &BoxRay<f32>) -> Lanes {
             near: [0, 1, 2].map(|a| offset(boxes.near[a], a)),
             far: [0, 1, 2].map(|a| offset(1 - boxes.near[a], a)),
             tmin8: _mm256_set1_ps(boxes.tmin),
-            kx: sheared.kx,
-            ky: sheared.ky,
-            kz: sheared.kz,
-            o4: sheared.origin.map(|o| _mm_set1_ps(o)),
-            sx: _mm_set1_ps(sheared.sx),
-            sy: _mm_set1_ps(sheared.sy),
-            sz: _mm_set1_ps(sheared.sz),
-            tmin4: _mm_set1_ps(boxes.tmin),
+            tri: tri_lanes(sheared, boxes.tmin),
         }
     }
 }
@@ -110,7 +128,11 @@ unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) 
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn block_test(block: &TriangleBlock, r: &Lanes, tmax: __m128) -> (u32, BlockHits) {
+pub(crate) unsafe fn block_test(
+    block: &TriangleBlock,
+    r: &TriLanes,
+    tmax: __m128,
+) -> (u32, BlockHits) {
     // SAFETY: blocks are 16-byte aligned and each lane array is 16 bytes at a multiple
     // of 16; AVX2 (and so SSE) is enabled in the caller.
     unsafe {
@@ -165,8 +187,8 @@ unsafe fn block_test(block: &TriangleBlock, r: &Lanes, tmax: __m128) -> (u32, Bl
 }
 
 /// A block test's per-lane values.
-struct BlockHits {
-    t: __m128,
+pub(crate) struct BlockHits {
+    pub(crate) t: __m128,
     u: __m128,
     v: __m128,
     w: __m128,
@@ -176,7 +198,7 @@ struct BlockHits {
 impl BlockHits {
     /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
     #[inline(always)]
-    fn hit(&self, lane: usize) -> TriangleHit {
+    pub(crate) fn hit(&self, lane: usize) -> TriangleHit {
         let get = |x: __m128| {
             let mut out = [0f32; 4];
             // SAFETY: `out` holds four floats; SSE is part of x86-64.
@@ -230,17 +252,17 @@ fn exact_edges(
 /// Distances are never negative, so integer order is the order of `(distance, child)`,
 /// the order in which both the scalar and the AVX2 traversals visit children.
 #[inline(always)]
-fn pack(distance: f32, child: u32) -> u64 {
+pub(crate) fn pack(distance: f32, child: u32) -> u64 {
     (u64::from(distance.to_bits()) << 32) | u64::from(child)
 }
 
 #[inline(always)]
-fn distance(entry: u64) -> f32 {
+pub(crate) fn distance(entry: u64) -> f32 {
     f32::from_bits((entry >> 32) as u32)
 }
 
-/// Closest-hit traversal of the triangle tree: the nearest hit with `tmin < t < tmax`
-/// (the rounded ray's bounds in `boxes` and `tmax`), under the tie rule of [`Nearest`].
+/// Closest-hit traversal of the triangle tree: the nearest hit with `tmin < t < tmax`,
+/// under the tie rule of [`Nearest`].
 ///
 /// # Safety
 /// The CPU must support AVX2 ([`available`]).
@@ -248,9 +270,7 @@ fn distance(entry: u64) -> f32 {
 pub unsafe fn closest(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
-    sheared: &ShearedRay,
-    boxes: &BoxRay<f32>,
-    tmax: f32,
+    ray: TriangleRay,
 ) -> Option<(Nearest, TriangleHit)> {
     assert!(
         bvh.stack_bound() <= STACK,
@@ -261,10 +281,10 @@ pub unsafe fn closest(
         return None;
     }
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
-    let r = unsafe { lanes(sheared, boxes) };
+    let r = unsafe { lanes(&ray.sheared(), &ray.boxes()) };
     let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
     let mut sp = 0usize;
-    let mut nearest = Nearest::before(tmax);
+    let mut nearest = Nearest::before(ray.tmax);
     let mut found = None;
     // Boxes are kept when entered at or before the nearest hit (ties may still win), and
     // triangles tested up to it inclusive: `t < next_up(nearest.t)`.
@@ -285,7 +305,6 @@ pub unsafe fn closest(
             let first = mask.trailing_zeros() as usize;
             let rest = mask & (mask - 1);
             current = node.children[first];
-            prefetch(nodes, blocks, current);
             if rest == 0 {
                 continue;
             }
@@ -295,7 +314,6 @@ pub unsafe fn closest(
             let second = rest.trailing_zeros() as usize;
             let a = pack(entries[first], current);
             let b = pack(entries[second], node.children[second]);
-            prefetch(nodes, blocks, b as u32);
             if rest & (rest - 1) == 0 {
                 // Two children: visit the nearer, push the farther.
                 let (near, far) = if a <= b { (a, b) } else { (b, a) };
@@ -331,7 +349,7 @@ pub unsafe fn closest(
             (0, 0)
         };
         for b in first..first + count {
-            let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &r, t_tri) };
+            let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &r.tri, t_tri) };
             if mask != 0 {
                 let mut t = [0f32; 4];
                 // SAFETY: `t` holds four floats.
@@ -367,37 +385,12 @@ pub unsafe fn closest(
     found.map(|hit| (nearest, hit))
 }
 
-/// Asks for the first cache lines of a node or a leaf's first block.
-#[inline(always)]
-fn prefetch(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: u32) {
-    let line: *const i8 = if child & LEAF == 0 {
-        nodes.as_ptr().wrapping_add(child as usize).cast()
-    } else {
-        blocks
-            .as_ptr()
-            .wrapping_add(leaf_range(child).0 as usize)
-            .cast()
-    };
-    // SAFETY: prefetching never faults, whatever the address.
-    unsafe {
-        _mm_prefetch::<_MM_HINT_T0>(line);
-        _mm_prefetch::<_MM_HINT_T0>(line.wrapping_add(64));
-        _mm_prefetch::<_MM_HINT_T0>(line.wrapping_add(128));
-    }
-}
-
 /// Any-hit traversal: whether some triangle has `tmin < t < tmax`.
 ///
 /// # Safety
 /// As for [`closest`].
 #[target_feature(enable = "avx2")]
-pub unsafe fn any(
-    bvh: &Bvh<f32>,
-    blocks: &[TriangleBlock],
-    sheared: &ShearedRay,
-    boxes: &BoxRay<f32>,
-    tmax: f32,
-) -> bool {
+pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: TriangleRay) -> bool {
     assert!(
         bvh.stack_bound() <= STACK,
         "the scalar path handles deeper trees"
@@ -407,7 +400,8 @@ pub unsafe fn any(
         return false;
     }
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
-    let r = unsafe { lanes(sheared, boxes) };
+    let r = unsafe { lanes(&ray.sheared(), &ray.boxes()) };
+    let tmax = ray.tmax;
     let t_far = _mm256_set1_ps(tmax);
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
     let mut sp = 0usize;
@@ -417,7 +411,7 @@ pub unsafe fn any(
             let (first, count) = leaf_range(current);
             let t_tri = _mm_set1_ps(tmax);
             for b in first..first + count {
-                if unsafe { block_test(&blocks[b as usize], &r, t_tri) }.0 != 0 {
+                if unsafe { block_test(&blocks[b as usize], &r.tri, t_tri) }.0 != 0 {
                     return true;
                 }
             }

@@ -31,6 +31,7 @@ pub struct ShearedRay {
 
 impl ShearedRay {
     /// Prepares `origin + t·direction`; `direction` must not be zero.
+    #[inline(always)]
     pub fn new(origin: Vec3, direction: Vec3) -> ShearedRay {
         let d = direction.to_array();
         let abs = direction.abs();

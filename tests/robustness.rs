@@ -460,12 +460,20 @@ fn the_avx2_kernels_give_bit_identical_hits_to_the_scalar_path() {
     }
     let mut numbers = Numbers(99);
     let (soup_triangles, mut rays) = soup(&mut numbers, 3000);
+    // Shift the soup's rays so whole 64-ray groups of them start at the tiled rays below.
+    rays.truncate(rays.len() / 64 * 64);
     let grid = placed(&procedural::pixel_grid(64), DMat4::IDENTITY);
     let ico = placed(&procedural::icosphere(3), DMat4::IDENTITY);
-    for y in 0..64 {
-        for x in 0..64 {
+    // Camera rays in 8 × 8 tiles (as the renderer traces them): packet-eligible groups.
+    let tiled_start = rays.len();
+    for tile in 0..64 {
+        for i in 0..64 {
+            let (x, y) = (tile % 8 * 8 + i % 8, tile / 8 * 8 + i / 8);
             let d = crate::util::default_camera_direction(x, y, 64, 64);
-            rays.push(ray(DVec3::ZERO, DVec3::from_array(d)));
+            rays.push(ray(
+                DVec3::new(0.01, 0.02, -0.5),
+                DVec3::from_array(d) + DVec3::new(0.01, 0.02, -0.5),
+            ));
         }
     }
     for target in shared_targets(&ico.triangles).into_iter().step_by(7) {
@@ -485,6 +493,30 @@ fn the_avx2_kernels_give_bit_identical_hits_to_the_scalar_path() {
                 .iter()
                 .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
                 .collect();
+            // The batch queries (packets of coherent rays, single rays otherwise) agree too.
+            assert!(
+                rays[tiled_start..tiled_start + 64 * 64]
+                    .chunks(64)
+                    .all(|group| scene.traces_as_packet(group))
+            );
+            let mut closest = vec![None; rays.len()];
+            let mut any = vec![false; rays.len()];
+            for ((rays, closest), any) in rays
+                .chunks(64)
+                .zip(closest.chunks_mut(64))
+                .zip(any.chunks_mut(64))
+            {
+                scene.closest_hits(rays, closest);
+                scene.any_hits(rays, any);
+            }
+            for (i, ((c, a), f)) in closest.iter().zip(&any).zip(&fast).enumerate() {
+                assert_eq!(
+                    (c, a),
+                    (&f.0, &f.1),
+                    "{preset:?}: batch ray {i}: {:?}",
+                    rays[i]
+                );
+            }
             scene.set_simd(false);
             assert!(!scene.uses_simd());
             let scalar: Vec<_> = rays

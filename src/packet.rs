@@ -1,0 +1,363 @@
+//! Packets of coherent rays (the camera rays of an 8 × 8 tile) traced together with AVX2.
+//!
+//! Inner nodes are tested once per packet, with bounds on the packet's entry and exit
+//! distances: the products `(plane − origin) · (1/d)` are bilinear in the origin and the
+//! reciprocal direction, so their extremes over the packet lie at the corners of the
+//! ranges of both, and since rounding is monotonic the corners computed in float32 bound
+//! every ray's own computed value. A node is therefore skipped only if every ray's own
+//! robust test would skip it. Leaves are tested ray by ray with exactly the single-ray box
+//! and triangle tests, eight rays per instruction for the box. A packet needs all its rays
+//! to share the signs of their direction (one near plane per axis); callers trace other
+//! rays one by one.
+
+use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
+
+use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, leaf_range};
+use crate::scene::TriangleRay;
+use crate::simd::{STACK, block_test, distance, pack, tri_lanes};
+use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
+
+/// Most rays in a packet.
+pub const PACKET: usize = 64;
+/// Rows of eight rays.
+const ROWS: usize = PACKET / 8;
+
+/// Stack entries for a leaf carry its parent node and slot (for the leaf's box).
+const SLOT_BITS: u32 = 3;
+
+/// One ray per lane, eight rays per row.
+#[repr(C, align(32))]
+struct Rows([[f32; 8]; ROWS]);
+
+impl Rows {
+    const ZERO: Rows = Rows([[0.0; 8]; ROWS]);
+}
+
+/// Closest hits of up to [`PACKET`] rays traced together; `out[i]` receives ray `i`'s
+/// nearest triangle hit (as [`crate::simd::closest`] would). Returns `false`, touching
+/// nothing, when the rays' directions differ in sign on some axis.
+///
+/// # Safety
+/// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
+#[target_feature(enable = "avx2")]
+pub unsafe fn closest(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    rays: &[TriangleRay],
+    out: &mut [Option<(Nearest, TriangleHit)>],
+) -> bool {
+    assert_eq!(rays.len(), out.len());
+    // SAFETY: as required of the caller.
+    unsafe { trace::<false>(bvh, blocks, rays, out, &mut []) }
+}
+
+/// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
+/// together; rays leave the packet as soon as they hit. Returns `false`, touching nothing,
+/// when the rays' directions differ in sign on some axis.
+///
+/// # Safety
+/// As for [`closest`].
+#[target_feature(enable = "avx2")]
+pub unsafe fn any(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    rays: &[TriangleRay],
+    out: &mut [bool],
+) -> bool {
+    assert_eq!(rays.len(), out.len());
+    // SAFETY: as required of the caller.
+    unsafe { trace::<true>(bvh, blocks, rays, &mut [], out) }
+}
+
+/// The packet traversal: closest hits into `closest`, or with `ANY` hit flags into `any`.
+#[target_feature(enable = "avx2")]
+unsafe fn trace<const ANY: bool>(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    rays: &[TriangleRay],
+    closest: &mut [Option<(Nearest, TriangleHit)>],
+    any: &mut [bool],
+) -> bool {
+    assert!(rays.len() <= PACKET);
+    assert!(
+        bvh.stack_bound() <= STACK,
+        "the scalar path handles deeper trees"
+    );
+    let n = rays.len();
+    if n == 0 {
+        return true;
+    }
+    any.fill(false);
+    // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
+    // never hit (their tmax is −∞).
+    let mut origin = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
+    let mut inv = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
+    let mut inv_far = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
+    let mut tmin = Rows::ZERO;
+    let mut t_box = Rows::ZERO;
+    let mut sheared = [MaybeUninit::<ShearedRay>::uninit(); PACKET];
+    let mut nearest = [Nearest::before(f32::NEG_INFINITY); PACKET];
+    // The packet's ranges over its live rays: origin, reciprocal direction (near and far
+    // planes), smallest tmin, largest tmax.
+    let mut o_range = [(f32::INFINITY, f32::NEG_INFINITY); 3];
+    let mut i_range = [(f32::INFINITY, f32::NEG_INFINITY); 3];
+    let mut f_range = [(f32::INFINITY, f32::NEG_INFINITY); 3];
+    let mut tmin_lo = f32::INFINITY;
+    let mut packet_tmax = f32::NEG_INFINITY;
+    let widen = |range: &mut (f32, f32), x: f32| {
+        if x < range.0 {
+            range.0 = x;
+        }
+        if x > range.1 {
+            range.1 = x;
+        }
+    };
+    let mut octant = [0usize; 3];
+    for k in 0..PACKET {
+        let ray = &rays[k.min(n - 1)];
+        let boxes: BoxRay<f32> = ray.boxes();
+        let (r, l) = (k / 8, k % 8);
+        for a in 0..3 {
+            origin[a].0[r][l] = boxes.origin[a];
+            inv[a].0[r][l] = boxes.inv_dir[a];
+            inv_far[a].0[r][l] = boxes.inv_dir_far[a];
+        }
+        tmin.0[r][l] = boxes.tmin;
+        if k == 0 {
+            octant = boxes.near;
+        }
+        if k < n {
+            if boxes.near != octant {
+                return false;
+            }
+            for a in 0..3 {
+                widen(&mut o_range[a], boxes.origin[a]);
+                widen(&mut i_range[a], boxes.inv_dir[a]);
+                widen(&mut f_range[a], boxes.inv_dir_far[a]);
+            }
+            tmin_lo = tmin_lo.min(boxes.tmin);
+            nearest[k] = Nearest::before(ray.tmax);
+            packet_tmax = packet_tmax.max(ray.tmax);
+            sheared[k].write(ray.sheared());
+        }
+        t_box.0[r][l] = nearest[k].t;
+    }
+    let nodes = bvh.nodes();
+    if nodes.is_empty() {
+        closest.fill(None);
+        any.fill(false);
+        return true;
+    }
+    let mut live = n;
+    let mut found: [Option<TriangleHit>; PACKET] = [None; PACKET];
+    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
+    let near: [usize; 3] = [0, 1, 2].map(|a| offset(octant[a], a));
+    let far: [usize; 3] = [0, 1, 2].map(|a| offset(1 - octant[a], a));
+
+    let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
+    let mut sp = 0usize;
+    let mut current = 0u32;
+    loop {
+        if current & LEAF == 0 {
+            let node = &nodes[current as usize];
+            let planes = node.planes.as_ptr().cast::<f32>();
+            // SAFETY: plane offsets are below 6 × 8 floats of a 64-byte aligned node.
+            let load = |offset: usize| unsafe { _mm256_load_ps(planes.add(offset)) };
+            let mut enter = _mm256_set1_ps(tmin_lo);
+            let mut exit = _mm256_set1_ps(packet_tmax);
+            for a in 0..3 {
+                let lower = corners(load(near[a]), o_range[a], i_range[a], Bound::Lower);
+                let upper = corners(load(far[a]), o_range[a], f_range[a], Bound::Upper);
+                enter = _mm256_max_ps(lower, enter);
+                exit = _mm256_min_ps(upper, exit);
+            }
+            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+            if mask != 0 {
+                let mut entries = [0f32; WIDTH];
+                // SAFETY: `entries` holds eight floats.
+                unsafe { _mm256_storeu_ps(entries.as_mut_ptr(), enter) };
+                // Every entered child onto the stack, farthest first; leaves as their
+                // parent and slot, so that their box can be read when they are reached.
+                let base = sp;
+                let mut m = mask;
+                while m != 0 {
+                    let i = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let child = node.children[i];
+                    let reference = if child & LEAF == 0 {
+                        child
+                    } else {
+                        LEAF | (current << SLOT_BITS) | i as u32
+                    };
+                    let key = pack(entries[i], reference);
+                    if ANY {
+                        // Any order finds a hit as well; skip the sort.
+                        stack[sp] = MaybeUninit::new(key);
+                        sp += 1;
+                        continue;
+                    }
+                    let mut j = sp;
+                    // SAFETY: slots `base..sp` were written by this loop.
+                    while j > base && unsafe { stack[j - 1].assume_init() } < key {
+                        stack[j] = stack[j - 1];
+                        j -= 1;
+                    }
+                    stack[j] = MaybeUninit::new(key);
+                    sp += 1;
+                }
+            }
+        } else {
+            // A leaf: its box against every ray, then each entering ray's own triangle tests.
+            let parent = (current & !LEAF) >> SLOT_BITS;
+            let slot = (current & ((1 << SLOT_BITS) - 1)) as usize;
+            let node = &nodes[parent as usize];
+            let plane = |offset: usize| {
+                let (side, axis) = (offset / (3 * WIDTH), offset / WIDTH % 3);
+                _mm256_set1_ps(node.planes[side][axis][slot])
+            };
+            let (first, count) = leaf_range(node.children[slot]);
+            let mut improved = false;
+            for r in 0..ROWS {
+                // SAFETY: rows are 32-byte aligned arrays of eight floats.
+                let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
+                let slab = |offset: usize, a: usize, inv: &[Rows; 3]| {
+                    _mm256_mul_ps(
+                        _mm256_sub_ps(plane(offset), lane(&origin[a])),
+                        lane(&inv[a]),
+                    )
+                };
+                let enter = _mm256_max_ps(
+                    slab(near[0], 0, &inv),
+                    _mm256_max_ps(
+                        slab(near[1], 1, &inv),
+                        _mm256_max_ps(slab(near[2], 2, &inv), lane(&tmin)),
+                    ),
+                );
+                let exit = _mm256_min_ps(
+                    slab(far[0], 0, &inv_far),
+                    _mm256_min_ps(
+                        slab(far[1], 1, &inv_far),
+                        _mm256_min_ps(slab(far[2], 2, &inv_far), lane(&t_box)),
+                    ),
+                );
+                let mut hits = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+                while hits != 0 {
+                    let k = r * 8 + hits.trailing_zeros() as usize;
+                    hits &= hits - 1;
+                    // SAFETY: ray `k` is live (only live lanes enter boxes), so it was
+                    // written above; AVX2 is enabled in this function.
+                    let tri = unsafe { tri_lanes(sheared[k].assume_init_ref(), tmin.0[r][k % 8]) };
+                    for b in first..first + count {
+                        // Strict for any-hit (`t < tmax`), ties admitted for closest.
+                        let t_tri = _mm_set1_ps(if ANY {
+                            nearest[k].t
+                        } else {
+                            nearest[k].t.next_up()
+                        });
+                        // SAFETY: AVX2 is enabled in this function.
+                        let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &tri, t_tri) };
+                        if mask == 0 {
+                            continue;
+                        }
+                        if ANY {
+                            any[k] = true;
+                            nearest[k].t = f32::NEG_INFINITY;
+                            t_box.0[r][k % 8] = f32::NEG_INFINITY;
+                            live -= 1;
+                            improved = true;
+                            break;
+                        }
+                        let mut t = [0f32; 4];
+                        // SAFETY: `t` holds four floats.
+                        unsafe { _mm_storeu_ps(t.as_mut_ptr(), lanes.t) };
+                        let mut lane_bits = mask;
+                        while lane_bits != 0 {
+                            let l = lane_bits.trailing_zeros() as usize;
+                            lane_bits &= lane_bits - 1;
+                            let slot = b * BLOCK as u32 + l as u32;
+                            if nearest[k].improves(t[l], slot) {
+                                nearest[k] = Nearest { t: t[l], slot };
+                                found[k] = Some(lanes.hit(l));
+                                t_box.0[r][k % 8] = t[l];
+                                improved = true;
+                            }
+                        }
+                    }
+                }
+            }
+            if improved {
+                packet_tmax = f32::NEG_INFINITY;
+                for near in &nearest[..n] {
+                    if near.t > packet_tmax {
+                        packet_tmax = near.t;
+                    }
+                }
+            }
+        }
+        // The next entry that some ray may still need.
+        loop {
+            if sp == 0 || (ANY && live == 0) {
+                if !ANY {
+                    for k in 0..n {
+                        closest[k] = found[k].map(|hit| (nearest[k], hit));
+                    }
+                }
+                return true;
+            }
+            sp -= 1;
+            // SAFETY: every slot below `sp` was written above.
+            let entry = unsafe { stack[sp].assume_init() };
+            if distance(entry) <= packet_tmax {
+                current = entry as u32;
+                break;
+            }
+        }
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Bound {
+    Lower,
+    Upper,
+}
+
+/// The smallest (or largest) of `(plane − o) · i` over the packet's ranges of `o` and `i`:
+/// the extreme of the four corners. A NaN corner (`0 · ∞`: a ray starting on the plane
+/// it runs along) stands for a ray whose own test ignores this axis, so the bound becomes
+/// unbounded.
+#[inline(always)]
+fn corners(
+    plane: __m256,
+    (o_lo, o_hi): (f32, f32),
+    (i_lo, i_hi): (f32, f32),
+    bound: Bound,
+) -> __m256 {
+    // SAFETY: the callers have AVX2 enabled (this is inlined into them).
+    unsafe {
+        let x_lo = _mm256_sub_ps(plane, _mm256_set1_ps(o_hi));
+        let x_hi = _mm256_sub_ps(plane, _mm256_set1_ps(o_lo));
+        let (i_lo, i_hi) = (_mm256_set1_ps(i_lo), _mm256_set1_ps(i_hi));
+        let c = [
+            _mm256_mul_ps(x_lo, i_lo),
+            _mm256_mul_ps(x_lo, i_hi),
+            _mm256_mul_ps(x_hi, i_lo),
+            _mm256_mul_ps(x_hi, i_hi),
+        ];
+        let nan = _mm256_or_ps(
+            _mm256_cmp_ps::<_CMP_UNORD_Q>(c[0], c[1]),
+            _mm256_cmp_ps::<_CMP_UNORD_Q>(c[2], c[3]),
+        );
+        let (extreme, unbounded) = match bound {
+            Bound::Lower => (
+                _mm256_min_ps(_mm256_min_ps(c[0], c[1]), _mm256_min_ps(c[2], c[3])),
+                f32::NEG_INFINITY,
+            ),
+            Bound::Upper => (
+                _mm256_max_ps(_mm256_max_ps(c[0], c[1]), _mm256_max_ps(c[2], c[3])),
+                f32::INFINITY,
+            ),
+        };
+        _mm256_blendv_ps(extreme, _mm256_set1_ps(unbounded), nan)
+    }
+}
