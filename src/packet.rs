@@ -138,10 +138,10 @@ unsafe fn trace<const ANY: bool>(
             }
             tmin_lo = tmin_lo.min(boxes.tmin);
             nearest[k] = Nearest::before(ray.tmax);
-            packet_tmax = packet_tmax.max(ray.tmax);
+            packet_tmax = packet_tmax.max(nearest[k].horizon());
             sheared[k].write(ray.sheared());
         }
-        t_box.0[r][l] = nearest[k].t;
+        t_box.0[r][l] = nearest[k].horizon();
     }
     let nodes = bvh.nodes();
     if nodes.is_empty() {
@@ -279,7 +279,7 @@ unsafe fn trace<const ANY: bool>(
                             if nearest[k].improves(t[l], slot) {
                                 nearest[k] = Nearest { t: t[l], slot };
                                 found[k] = Some(lanes.hit(l));
-                                t_box.0[r][k % 8] = t[l];
+                                t_box.0[r][k % 8] = nearest[k].horizon();
                                 improved = true;
                             }
                         }
@@ -289,8 +289,8 @@ unsafe fn trace<const ANY: bool>(
             if improved {
                 packet_tmax = f32::NEG_INFINITY;
                 for near in &nearest[..n] {
-                    if near.t > packet_tmax {
-                        packet_tmax = near.t;
+                    if near.horizon() > packet_tmax {
+                        packet_tmax = near.horizon();
                     }
                 }
             }

@@ -403,7 +403,7 @@ impl Scene {
                         found = Some(hit);
                     }
                 }
-                *tmax = nearest.t;
+                *tmax = nearest.horizon();
             });
         found.map(|hit| (nearest, hit))
     }

@@ -286,9 +286,9 @@ pub unsafe fn closest(
     let mut sp = 0usize;
     let mut nearest = Nearest::before(ray.tmax);
     let mut found = None;
-    // Boxes are kept when entered at or before the nearest hit (ties may still win), and
-    // triangles tested up to it inclusive: `t < next_up(nearest.t)`.
-    let mut t_box = _mm256_set1_ps(nearest.t);
+    // Boxes are kept when entered up to the search horizon just past the nearest hit (ties
+    // may still win), and triangles tested up to it inclusive: `t < next_up(nearest.t)`.
+    let mut t_box = _mm256_set1_ps(nearest.horizon());
     let mut t_tri = _mm_set1_ps(nearest.t.next_up());
     let mut current = 0u32;
     'trace: loop {
@@ -364,7 +364,7 @@ pub unsafe fn closest(
                         found = Some(lanes.hit(lane));
                     }
                 }
-                t_box = _mm256_set1_ps(nearest.t);
+                t_box = _mm256_set1_ps(nearest.horizon());
                 t_tri = _mm_set1_ps(nearest.t.next_up());
             }
         }
@@ -376,7 +376,7 @@ pub unsafe fn closest(
             sp -= 1;
             // SAFETY: every slot below `sp` was written above.
             let entry = unsafe { stack[sp].assume_init() };
-            if distance(entry) <= nearest.t {
+            if distance(entry) <= nearest.horizon() {
                 current = entry as u32;
                 continue 'trace;
             }

@@ -183,10 +183,20 @@ impl TriangleBlock {
     }
 }
 
+/// How far past the nearest hit so far a search still enters boxes, as a factor on its
+/// distance: `1 + 64u`. A triangle's computed distance can round below its box's computed
+/// entry distance (by a few units in the last place for a triangle in front of the ray, as
+/// at a shared vertex or edge); without the margin a traversal that found a hit first
+/// would skip such a box and miss a hit that is as near or one ulp nearer, so the answer
+/// would depend on the visiting order. The cost is a few more boxes entered at distances
+/// within 4·10⁻⁶ of the hit.
+pub const SEARCH_MARGIN: f32 = 1.0 + 32.0 * f32::EPSILON;
+
 /// The nearest triangle hit so far: its distance and slot (`4·block + lane` in the tree's
-/// layout). Among hits at exactly the same distance the lowest slot wins, so the result
-/// does not depend on the order in which a traversal visits the blocks: the scalar and
-/// AVX2 paths agree bit for bit whatever their visiting order.
+/// layout). Among hits at exactly the same distance the lowest slot wins, and with the
+/// search horizon ([`Nearest::horizon`]) every traversal finds all of them, so the result
+/// does not depend on the order in which a traversal visits the blocks: the scalar, AVX2
+/// and packet paths agree bit for bit.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Nearest {
     pub t: f32,
@@ -197,6 +207,13 @@ impl Nearest {
     /// Nothing found yet; only hits with `t < tmax` (strictly) will improve on it.
     pub fn before(tmax: f32) -> Nearest {
         Nearest { t: tmax, slot: 0 }
+    }
+
+    /// The distance up to which boxes must still be entered: `t` widened by
+    /// [`SEARCH_MARGIN`] (`t >= 0`; −∞ stays −∞ and stops the search).
+    #[inline(always)]
+    pub fn horizon(&self) -> f32 {
+        self.t * SEARCH_MARGIN
     }
 
     #[inline(always)]
