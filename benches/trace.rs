@@ -24,7 +24,7 @@ fn torus_scene(rings: u32, sides: u32) -> Scene {
     geometry
         .add_mesh(&mesh, DMat4::IDENTITY, "torus".as_ref())
         .unwrap();
-    Scene::build(geometry)
+    Scene::build(&geometry)
 }
 
 fn camera_rays(width: u32, height: u32) -> Vec<Ray> {

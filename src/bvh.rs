@@ -1,5 +1,5 @@
-//! An 8-wide bounding volume hierarchy: the tree comes from obvhs' PLOC builder, the nodes,
-//! the box test and the traversal are ours.
+//! An 8-wide bounding volume hierarchy: the binary tree comes from obvhs' PLOC builder;
+//! its collapse into wide nodes, the nodes, the box test and the traversal are ours.
 //!
 //! Why not obvhs' own traversal: its CWBVH node test clamps the entry distance to a fixed
 //! 1e-4 instead of the ray's `tmin`, its box tests are not conservative, its `safe_inverse`
@@ -22,6 +22,8 @@ use std::mem::MaybeUninit;
 use obvhs::BvhBuildParams;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::Bvh2;
+
+use crate::collapse::Collapse;
 
 /// Children per node.
 pub const WIDTH: usize = 8;
@@ -255,10 +257,11 @@ pub fn intersect_node<T: Scalar>(node: &Node<T>, ray: &BoxRay<T>, tmax: T) -> (u
 pub enum BuildPreset {
     /// PLOC with the smallest search radius and no reinsertion.
     Fastest,
-    /// obvhs' `fast_build`.
-    Fast,
-    /// obvhs' `medium_build`: about Embree's build time, better trees.
+    /// obvhs' `fast_build`: the default. On camera rays its trees trace as fast as the
+    /// slower presets' (BENCHMARKS.md), in about three quarters of the medium build time.
     #[default]
+    Fast,
+    /// obvhs' `medium_build`: more reinsertion.
     Medium,
     /// obvhs' `slow_build` without spatial splits (split boxes would not bound whole
     /// triangles, which the robust test relies on).
@@ -307,52 +310,28 @@ pub struct Bvh<T> {
 }
 
 impl<T: Scalar> Bvh<T> {
-    /// Builds the tree over primitives with exact bounds `bounds` (in `T`). obvhs decides
-    /// the topology from float32 boxes (`bounds` rounded outward); `emit_leaf` receives
-    /// each leaf's primitive indices and returns the `(first, count)` of the items it laid
-    /// out for them (`count` ≤ [`MAX_LEAF_ITEMS`]).
+    /// Builds the tree over primitives with boxes `boxes`: obvhs' PLOC builder (one
+    /// primitive per leaf) and reinsertion optimizer shape a binary tree, which is
+    /// collapsed into 8-wide nodes with leaves of at most `params.max_prims_per_leaf`
+    /// primitives ([`crate::collapse`]). Each slot's box is the union of its primitives'
+    /// boxes, exactly. `emit_leaf` receives each leaf's primitive indices and returns the
+    /// `(first, count)` of the items it laid out for them (`count` ≤ [`MAX_LEAF_ITEMS`]).
     pub fn build(
-        bounds: &[Bounds<T>],
-        topology_boxes: &[Aabb],
+        boxes: &[Aabb],
         params: BvhBuildParams,
         emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
     ) -> Bvh<T> {
-        assert_eq!(bounds.len(), topology_boxes.len());
-        if bounds.is_empty() {
+        if boxes.is_empty() {
             return Bvh {
                 nodes: Vec::new(),
                 stack_bound: 0,
                 depth: 0,
             };
         }
-        let bvh2 = build_bvh2(topology_boxes, params);
-        Bvh::from_bvh2(&bvh2, bounds, emit_leaf)
-    }
-
-    /// Builds the tree with obvhs' wide-BVH pipeline: PLOC with one primitive per leaf,
-    /// reinsertion, then the SAH-optimal collapse to 8-wide nodes with leaves of at most
-    /// `max_leaf` (≤ 3) primitives (Ylitie, Karras and Laine 2017). Only the grouping is
-    /// kept: obvhs' quantized boxes are replaced by exact ones computed from `bounds`.
-    pub fn build_wide(
-        bounds: &[Bounds<T>],
-        topology_boxes: &[Aabb],
-        mut params: BvhBuildParams,
-        emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
-    ) -> Bvh<T> {
-        assert_eq!(bounds.len(), topology_boxes.len());
-        if bounds.is_empty() {
-            return Bvh {
-                nodes: Vec::new(),
-                stack_bound: 0,
-                depth: 0,
-            };
-        }
-        let max_leaf = params.max_prims_per_leaf.clamp(1, 3);
-        params.max_prims_per_leaf = 1;
-        let mut bvh2 = obvhs::ploc::PlocBuilder::with_capacity(topology_boxes.len()).build(
+        let mut bvh2 = obvhs::ploc::PlocBuilder::with_capacity(boxes.len()).build(
             params.ploc_search_distance,
-            topology_boxes,
-            (0..topology_boxes.len() as u32).collect(),
+            boxes,
+            (0..boxes.len() as u32).collect(),
             params.sort_precision,
             params.search_depth_threshold,
         );
@@ -361,118 +340,71 @@ impl<T: Scalar> Bvh<T> {
             params.reinsertion_batch_ratio,
             None,
         );
-        let wide = obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh(&bvh2, max_leaf, false, false);
-        Bvh::from_cwbvh(&wide, bounds, emit_leaf)
+        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, emit_leaf)
     }
 
-    /// Takes the node grouping of an obvhs compressed wide BVH: slot `i` of node `n` is an
-    /// inner node when bit `i` of `imask` is set (inner children follow `child_base_idx` in
-    /// slot order), else a leaf whose `child_meta` gives its primitives' offset (low 5
-    /// bits) and count (unary, high 3 bits) from `primitive_base_idx`.
-    pub fn from_cwbvh(
-        wide: &obvhs::cwbvh::CwBvh,
-        bounds: &[Bounds<T>],
-        mut emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
-    ) -> Bvh<T> {
-        let mut nodes = vec![Node::empty(); wide.nodes.len()];
-        let mut slot_bounds = vec![[Bounds::EMPTY; WIDTH]; wide.nodes.len()];
-        let mut level = vec![0usize; wide.nodes.len()];
-        level[0] = 1;
-        for (n, source) in wide.nodes.iter().enumerate() {
-            let mut inner = 0;
-            for (slot, &meta) in source.child_meta.iter().enumerate() {
-                if source.imask & (1 << slot) != 0 {
-                    let child = source.child_base_idx as usize + inner;
-                    inner += 1;
-                    nodes[n].children[slot] = child as ChildRef;
-                    level[child] = level[n] + 1;
-                } else if meta != 0 {
-                    let count = (meta >> 5).count_ones() as usize;
-                    let first = source.primitive_base_idx as usize + (meta & 0b1_1111) as usize;
-                    let prims = &wide.primitive_indices[first..first + count];
-                    slot_bounds[n][slot] = prims
-                        .iter()
-                        .fold(Bounds::EMPTY, |acc, &p| acc.union(&bounds[p as usize]));
-                    let (first, count) = emit_leaf(prims);
-                    nodes[n].children[slot] = leaf_ref(first, count);
-                }
-            }
-        }
-        let depth = level.iter().copied().max().unwrap_or(1);
-        fill_bounds(&mut nodes, &mut slot_bounds);
-        Bvh {
-            nodes,
-            stack_bound: (WIDTH - 1) * depth + 1,
-            depth,
-        }
-    }
-
-    /// Converts a binary obvhs tree: each node takes up to [`WIDTH`] descendants, always
-    /// opening the inner one with the largest surface area. Iterative, so a degenerate
-    /// (very deep) tree cannot exhaust the call stack.
+    /// Collapses a binary obvhs tree into 8-wide nodes ([`crate::collapse`]), with leaves
+    /// of at most `max_leaf` primitives (a binary leaf with more stays whole). Slot boxes
+    /// are the binary nodes' boxes, which obvhs keeps as exact unions of the primitives'
+    /// (`bvh::tests::slot_boxes_are_exact_unions_of_their_primitives`). Nodes are laid
+    /// out depth first, each node's inner children side by side. Iterative, so a
+    /// degenerate (very deep) tree cannot exhaust the call stack.
     pub fn from_bvh2(
         bvh2: &Bvh2,
-        bounds: &[Bounds<T>],
+        max_leaf: u32,
         mut emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
     ) -> Bvh<T> {
-        let mut nodes = vec![Node::empty()];
-        // Slot boxes are filled in a second, bottom-up pass.
-        let mut slot_bounds: Vec<[Bounds<T>; WIDTH]> = vec![[Bounds::EMPTY; WIDTH]];
-        let mut pending = vec![(0usize, 0usize, 1usize)]; // (bvh2 node, wide node, depth)
+        let collapse = Collapse::new(bvh2, max_leaf.max(1));
+        let mut nodes = Vec::with_capacity(bvh2.primitive_indices.len() / 4 + 1);
+        nodes.push(Node::empty());
+        let mut pending = vec![(0usize, 0usize, 1usize)]; // (binary node, wide node, depth)
         let mut depth = 1;
-        let mut leaf = |node: &obvhs::bvh2::node::Bvh2Node| -> (ChildRef, Bounds<T>) {
-            let first = node.first_index as usize;
-            let prims = &bvh2.primitive_indices[first..first + node.prim_count as usize];
-            let b = prims
-                .iter()
-                .fold(Bounds::EMPTY, |acc, &p| acc.union(&bounds[p as usize]));
-            let (first, count) = emit_leaf(prims);
-            (leaf_ref(first, count), b)
-        };
-
-        let root = &bvh2.nodes[0];
-        if root.is_leaf() {
-            let (child, b) = leaf(root);
-            nodes[0].children[0] = child;
-            slot_bounds[0][0] = b;
-        }
+        let (mut children, mut walk, mut prims) = (Vec::new(), Vec::new(), Vec::new());
         while let Some((source, target, level)) = pending.pop() {
-            let source_node = &bvh2.nodes[source];
-            if source_node.is_leaf() {
-                continue;
-            }
             depth = depth.max(level);
-            let mut open = vec![
-                source_node.first_index as usize,
-                source_node.first_index as usize + 1,
-            ];
-            while open.len() < WIDTH {
-                let area = |n: usize| bvh2.nodes[n].aabb().half_area();
-                let widest = (0..open.len())
-                    .filter(|&i| !bvh2.nodes[open[i]].is_leaf())
-                    .max_by(|&a, &b| area(open[a]).total_cmp(&area(open[b])));
-                let Some(i) = widest else { break };
-                let n = open.swap_remove(i);
-                let first = bvh2.nodes[n].first_index as usize;
-                open.extend([first, first + 1]);
+            collapse.children(source, &mut children);
+            let base = nodes.len();
+            let mut inner = 0;
+            for (slot, &child) in children.iter().enumerate() {
+                let aabb = bvh2.nodes[child].aabb();
+                nodes[target].set_bounds(
+                    slot,
+                    &Bounds {
+                        min: aabb.min.to_array().map(T::from_f32),
+                        max: aabb.max.to_array().map(T::from_f32),
+                    },
+                );
+                if !collapse.is_leaf(child) {
+                    nodes[target].children[slot] = (base + inner) as ChildRef;
+                    inner += 1;
+                    continue;
+                }
+                // The subtree's primitives, left to right.
+                prims.clear();
+                walk.push(child);
+                while let Some(n) = walk.pop() {
+                    let node = &bvh2.nodes[n];
+                    let first = node.first_index as usize;
+                    if node.is_leaf() {
+                        prims.extend_from_slice(
+                            &bvh2.primitive_indices[first..first + node.prim_count as usize],
+                        );
+                    } else {
+                        walk.extend([first + 1, first]);
+                    }
+                }
+                let (first, count) = emit_leaf(&prims);
+                nodes[target].children[slot] = leaf_ref(first, count);
             }
-            for (slot, &n) in open.iter().enumerate() {
-                let child = &bvh2.nodes[n];
-                if child.is_leaf() {
-                    let (child_ref, b) = leaf(child);
-                    nodes[target].children[slot] = child_ref;
-                    slot_bounds[target][slot] = b;
-                } else {
-                    let index = nodes.len();
-                    nodes.push(Node::empty());
-                    slot_bounds.push([Bounds::EMPTY; WIDTH]);
-                    nodes[target].children[slot] = index as ChildRef;
-                    pending.push((n, index, level + 1));
+            nodes.resize(base + inner, Node::empty());
+            // The first inner child is built next: depth-first order.
+            for (slot, &child) in children.iter().enumerate().rev() {
+                let wide = nodes[target].children[slot];
+                if wide & LEAF == 0 {
+                    pending.push((child, wide as usize, level + 1));
                 }
             }
         }
-
-        fill_bounds(&mut nodes, &mut slot_bounds);
         Bvh {
             nodes,
             stack_bound: (WIDTH - 1) * depth + 1,
@@ -623,49 +555,6 @@ impl<T: Scalar> Bvh<T> {
     }
 }
 
-/// Writes every slot's box into its node. Leaf slots come with their boxes; an inner
-/// slot's box is the union of its child's slots. Children always come after their parent,
-/// so a reverse sweep sees every child's box before the parent needs it.
-fn fill_bounds<T: Scalar>(nodes: &mut [Node<T>], slot_bounds: &mut [[Bounds<T>; WIDTH]]) {
-    for index in (0..nodes.len()).rev() {
-        for slot in 0..WIDTH {
-            let child = nodes[index].children[slot];
-            if child & LEAF == 0 && child != 0 {
-                let b = slot_bounds[child as usize]
-                    .iter()
-                    .fold(Bounds::EMPTY, |acc, s| acc.union(s));
-                slot_bounds[index][slot] = b;
-            }
-            let b = slot_bounds[index][slot];
-            nodes[index].set_bounds(slot, &b);
-        }
-    }
-}
-
-/// Runs obvhs' PLOC builder, reinsertion and leaf collapse on the given boxes.
-pub fn build_bvh2(boxes: &[Aabb], params: BvhBuildParams) -> Bvh2 {
-    let mut bvh2 = obvhs::ploc::PlocBuilder::with_capacity(boxes.len()).build(
-        params.ploc_search_distance,
-        boxes,
-        (0..boxes.len() as u32).collect(),
-        params.sort_precision,
-        params.search_depth_threshold,
-    );
-    let mut reinsertion = obvhs::bvh2::reinsertion::ReinsertionOptimizer::default();
-    reinsertion.run(&mut bvh2, params.reinsertion_batch_ratio, None);
-    obvhs::bvh2::leaf_collapser::collapse(
-        &mut bvh2,
-        params.max_prims_per_leaf,
-        params.collapse_traversal_cost,
-    );
-    reinsertion.run(
-        &mut bvh2,
-        params.reinsertion_batch_ratio * params.post_collapse_reinsertion_batch_ratio_multiplier,
-        None,
-    );
-    bvh2
-}
-
 /// The float32 box obvhs needs for a primitive, rounded outward from exact float64 bounds.
 pub fn outward_f32(min: [f64; 3], max: [f64; 3]) -> Aabb {
     Aabb::new(
@@ -747,6 +636,94 @@ mod tests {
         let mut node = Node::empty();
         node.set_bounds(0, &Bounds { min: lo, max: hi });
         node
+    }
+
+    /// Boxes scattered over many scales, with shared and repeated coordinates.
+    fn scattered_boxes(count: usize) -> Vec<Aabb> {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        (0..count)
+            .map(|i| {
+                let scale = [1e-3, 1.0, 1e4][i % 3];
+                let lo = glam::Vec3A::new(next(), next(), next()) * scale;
+                let size = glam::Vec3A::new(next(), next(), next()) * scale * 0.01;
+                // Every seventh box is a point, every fifth (otherwise) flat.
+                let size = match i {
+                    _ if i % 7 == 0 => glam::Vec3A::ZERO,
+                    _ if i % 5 == 0 => size * glam::Vec3A::new(1.0, 0.0, 1.0),
+                    _ => size,
+                };
+                Aabb::new(lo, lo + size)
+            })
+            .collect()
+    }
+
+    /// The union of the primitives under `child`, checking every slot box on the way
+    /// against it and marking each primitive seen (once).
+    fn checked_union(
+        bvh: &Bvh<f32>,
+        child: ChildRef,
+        order: &[u32],
+        boxes: &[Aabb],
+        seen: &mut [bool],
+    ) -> Bounds<f32> {
+        if child & LEAF != 0 {
+            let (first, count) = leaf_range(child);
+            let prims = &order[first as usize..(first + count) as usize];
+            return prims.iter().fold(Bounds::EMPTY, |acc, &p| {
+                assert!(!seen[p as usize], "primitive {p} in two leaves");
+                seen[p as usize] = true;
+                let b = &boxes[p as usize];
+                acc.union(&Bounds {
+                    min: b.min.to_array(),
+                    max: b.max.to_array(),
+                })
+            });
+        }
+        let node = &bvh.nodes()[child as usize];
+        let mut all = Bounds::EMPTY;
+        for slot in 0..WIDTH {
+            if node.children[slot] == 0 {
+                continue;
+            }
+            let b = checked_union(bvh, node.children[slot], order, boxes, seen);
+            let stored = Bounds {
+                min: [0, 1, 2].map(|a| node.planes[0][a][slot]),
+                max: [0, 1, 2].map(|a| node.planes[1][a][slot]),
+            };
+            assert_eq!(stored, b, "node {child} slot {slot}");
+            all = all.union(&b);
+        }
+        all
+    }
+
+    #[test]
+    fn slot_boxes_are_exact_unions_of_their_primitives() {
+        // For every preset and leaf size: a box obvhs had padded or shrunk, or a slot
+        // pointing at the wrong subtree, fails here.
+        let boxes = scattered_boxes(5000);
+        for preset in BuildPreset::ALL {
+            for max_leaf in [1, 3, 4] {
+                let mut order: Vec<u32> = Vec::new();
+                let bvh: Bvh<f32> = Bvh::build(&boxes, preset.params(max_leaf), |prims| {
+                    assert!(prims.len() <= max_leaf as usize, "{preset:?}");
+                    let first = order.len() as u32;
+                    order.extend_from_slice(prims);
+                    (first, prims.len() as u32)
+                });
+                let mut seen = vec![false; boxes.len()];
+                checked_union(&bvh, 0, &order, &boxes, &mut seen);
+                assert!(
+                    seen.iter().all(|&s| s),
+                    "{preset:?}: a primitive is missing"
+                );
+            }
+        }
     }
 
     #[test]

@@ -40,7 +40,7 @@ pub struct EmbreeScene {
 pub struct EmbreeError(String);
 
 impl EmbreeScene {
-    pub fn build(geometry: SceneGeometry) -> Result<EmbreeScene, EmbreeError> {
+    pub fn build(geometry: &SceneGeometry) -> Result<EmbreeScene, EmbreeError> {
         let fail = |what: &str, e: embree3::Error| EmbreeError(format!("{what}: {e:?}"));
         let device = Device::new().map_err(|e| fail("cannot create a device", e))?;
         let mut scene = device
@@ -111,9 +111,10 @@ impl EmbreeScene {
             _device: device,
             triangle_geometry,
             sphere_geometry,
-            triangles,
-            spheres,
-            planes,
+            // Kept for the normals of hits.
+            triangles: triangles.clone(),
+            spheres: spheres.clone(),
+            planes: planes.clone(),
             counts,
         })
     }

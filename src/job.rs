@@ -238,7 +238,7 @@ impl Batch {
 
 /// Builds the tracer, renders and writes the image, recording the times in `report`.
 fn finish<T: Tracer>(
-    build: impl FnOnce(SceneGeometry) -> Result<T, Error>,
+    build: impl FnOnce(&SceneGeometry) -> Result<T, Error>,
     geometry: SceneGeometry,
     manifest: &Manifest,
     output: &Path,
@@ -246,7 +246,9 @@ fn finish<T: Tracer>(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(), Error> {
     let start = Instant::now();
-    let scene = build(geometry)?;
+    let scene = build(&geometry)?;
+    // The scene holds its own copies: the placed triangles are not needed while rendering.
+    drop(geometry);
     let counts = scene.counts();
     report.triangles = Some(counts.triangles);
     report.spheres = Some(counts.spheres);

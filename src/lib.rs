@@ -16,7 +16,7 @@
 //!
 //! let manifest = Manifest::load("scenes/canonical.json".as_ref())?;
 //! let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new())?;
-//! let scene = Scene::build(geometry);
+//! let scene = Scene::build(&geometry);
 //! let image = raybatch::render::render(&scene, &manifest, &|_| {})?;
 //! image.write(&manifest.output)?;
 //! # Ok::<(), Box<dyn std::error::Error>>(())
@@ -25,6 +25,7 @@
 pub mod bench;
 pub mod bvh;
 pub mod camera;
+pub mod collapse;
 pub mod compare;
 #[cfg(feature = "embree")]
 pub mod embree;

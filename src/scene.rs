@@ -8,10 +8,11 @@
 
 use std::sync::Arc;
 
-use glam::{DMat4, DVec3, Vec3};
+use glam::{DMat4, DVec3, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
+use rayon::prelude::*;
 
-use crate::bvh::{self, Bounds, BoxRay, BuildPreset, Bvh};
+use crate::bvh::{self, BoxRay, BuildPreset, Bvh};
 use crate::error::{Error, MeshError};
 use crate::manifest::{MAX_MAGNITUDE, Manifest};
 use crate::mesh::{MeshCache, MeshFile};
@@ -193,12 +194,14 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Builds the trees with the default preset.
-    pub fn build(geometry: SceneGeometry) -> Scene {
+    /// Builds the trees with the default preset. The scene keeps copies of what it needs;
+    /// `geometry` may be dropped (or built again) afterwards.
+    pub fn build(geometry: &SceneGeometry) -> Scene {
         Scene::build_with(geometry, BuildPreset::default())
     }
 
-    pub fn build_with(geometry: SceneGeometry, preset: BuildPreset) -> Scene {
+    /// Builds the trees with the given preset.
+    pub fn build_with(geometry: &SceneGeometry, preset: BuildPreset) -> Scene {
         let SceneGeometry {
             triangles,
             spheres,
@@ -206,8 +209,8 @@ impl Scene {
             ..
         } = geometry;
 
-        let (blocks, triangle_bvh) = build_triangles(&triangles, preset);
-        let (sphere_order, sphere_ids, sphere_bvh) = build_spheres(&spheres, preset);
+        let (blocks, triangle_bvh) = build_triangles(triangles, preset);
+        let (sphere_order, sphere_ids, sphere_bvh) = build_spheres(spheres, preset);
 
         let counts = SceneCounts {
             triangles: triangles.len(),
@@ -219,10 +222,10 @@ impl Scene {
                 + sphere_bvh.memory_bytes(),
         };
         Scene {
-            planes,
+            planes: planes.clone(),
             spheres: sphere_order,
             sphere_ids,
-            spheres_by_id: spheres,
+            spheres_by_id: spheres.clone(),
             sphere_bvh,
             simd: simd_available() && triangle_bvh.stack_bound() <= SIMD_STACK,
             blocks,
@@ -581,38 +584,25 @@ fn build_triangles(
     triangles: &[[[f32; 3]; 3]],
     preset: BuildPreset,
 ) -> (Vec<TriangleBlock>, Bvh<f32>) {
-    let bounds: Vec<Bounds<f32>> = triangles
-        .iter()
+    let boxes: Vec<Aabb> = triangles
+        .par_iter()
         .map(|t| {
-            let lo = Vec3::from(t[0]).min(Vec3::from(t[1])).min(Vec3::from(t[2]));
-            let hi = Vec3::from(t[0]).max(Vec3::from(t[1])).max(Vec3::from(t[2]));
-            Bounds {
-                min: lo.to_array(),
-                max: hi.to_array(),
-            }
+            let [a, b, c] = t.map(Vec3A::from);
+            Aabb::new(a.min(b).min(c), a.max(b).max(c))
         })
-        .collect();
-    let boxes: Vec<Aabb> = bounds
-        .iter()
-        .map(|b| Aabb::new(b.min.into(), b.max.into()))
         .collect();
     // Triangles are laid out densely in leaf order, four to a block; a leaf covers the one
     // or two blocks its range touches. Testing a neighbouring leaf's triangles on the way
     // is harmless (they are real triangles of the scene) and keeps blocks full.
     let mut order: Vec<u32> = Vec::with_capacity(triangles.len());
-    let bvh = Bvh::build_wide(
-        &bounds,
-        &boxes,
-        preset.params(TRIANGLES_PER_LEAF),
-        |prims| {
-            let start = order.len();
-            order.extend_from_slice(prims);
-            let (first, last) = (start / BLOCK, (order.len() - 1) / BLOCK);
-            (first as u32, (last - first + 1) as u32)
-        },
-    );
+    let bvh = Bvh::build(&boxes, preset.params(TRIANGLES_PER_LEAF), |prims| {
+        let start = order.len();
+        order.extend_from_slice(prims);
+        let (first, last) = (start / BLOCK, (order.len() - 1) / BLOCK);
+        (first as u32, (last - first + 1) as u32)
+    });
     let blocks = order
-        .chunks(BLOCK)
+        .par_chunks(BLOCK)
         .map(|chunk| {
             let mut block = TriangleBlock {
                 v: [[[0.0; BLOCK]; 3]; 3],
@@ -635,24 +625,20 @@ fn build_triangles(
 }
 
 fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u32>, Bvh<f64>) {
-    let bounds: Vec<Bounds<f64>> = spheres
+    let boxes: Vec<Aabb> = spheres
         .iter()
         .map(|s| {
             // Rounded outward: the true surface reaches exactly c ± r.
             let c = s.center.to_array();
-            Bounds {
-                min: c.map(|x| (x - s.radius).next_down()),
-                max: c.map(|x| (x + s.radius).next_up()),
-            }
+            bvh::outward_f32(
+                c.map(|x| (x - s.radius).next_down()),
+                c.map(|x| (x + s.radius).next_up()),
+            )
         })
-        .collect();
-    let boxes: Vec<Aabb> = bounds
-        .iter()
-        .map(|b| bvh::outward_f32(b.min, b.max))
         .collect();
     let mut order = Vec::with_capacity(spheres.len());
     let mut ids = Vec::with_capacity(spheres.len());
-    let tree = Bvh::build(&bounds, &boxes, preset.params(SPHERES_PER_LEAF), |prims| {
+    let tree = Bvh::build(&boxes, preset.params(SPHERES_PER_LEAF), |prims| {
         let first = order.len() as u32;
         for &p in prims {
             order.push(spheres[p as usize]);

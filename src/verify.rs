@@ -77,10 +77,10 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
     let (triangles, spheres) = (geometry.triangles.len(), geometry.spheres.len());
 
     let start = Instant::now();
-    let ours = Scene::build(geometry.clone());
+    let ours = Scene::build(&geometry);
     let build_raybatch_s = start.elapsed().as_secs_f64();
     let start = Instant::now();
-    let reference = EmbreeScene::build(geometry).map_err(|e| Error::Backend(e.to_string()))?;
+    let reference = EmbreeScene::build(&geometry).map_err(|e| Error::Backend(e.to_string()))?;
     let build_embree_s = start.elapsed().as_secs_f64();
 
     let view = View::new(&manifest);

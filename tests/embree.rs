@@ -102,8 +102,8 @@ fn embree_in_robust_mode_agrees_that_nothing_leaks() {
             [p[0], (p[0] + p[1]) / 2.0, p[0] + (p[2] - p[0]) * 0.3]
         })
         .collect();
-    let ours = Scene::build(geometry.clone());
-    let reference = EmbreeScene::build(geometry).unwrap();
+    let ours = Scene::build(&geometry);
+    let reference = EmbreeScene::build(&geometry).unwrap();
     let origin = DVec3::new(0.3, -1.1, 2.0);
     for target in targets {
         let ray = Ray {
@@ -122,7 +122,7 @@ fn embree_in_robust_mode_agrees_that_nothing_leaks() {
 #[test]
 #[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
 fn scanned_models_agree_with_embree() {
-    let models = std::env::var("RAYBATCH_MODELS").expect("set RAYBATCH_MODELS");
+    let models = crate::util::folder("RAYBATCH_MODELS");
     let dir = Dir::new();
     let mut count = 0;
     for entry in std::fs::read_dir(&models).unwrap() {

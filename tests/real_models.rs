@@ -10,22 +10,10 @@ use raybatch::mesh::MeshCache;
 use raybatch::triangle::{self, ShearedRay};
 use raybatch::{Manifest, Ray, Scene, SceneGeometry};
 
-use crate::util::Dir;
+use crate::util::{Dir, folder};
 
 /// The folder named by `variable`; a missing variable fails the test rather than letting
 /// it pass without looking at anything.
-fn folder(variable: &str) -> PathBuf {
-    let value = std::env::var_os(variable)
-        .unwrap_or_else(|| panic!("set {variable} to run this test (see tests/real_models.rs)"));
-    let path = PathBuf::from(value);
-    assert!(
-        path.is_dir(),
-        "{variable}={} is not a folder",
-        path.display()
-    );
-    std::fs::canonicalize(path).unwrap()
-}
-
 fn files_with(root: &Path, extensions: &[&str]) -> Vec<PathBuf> {
     let mut found = Vec::new();
     let mut stack = vec![root.to_path_buf()];
@@ -64,7 +52,7 @@ fn scanned_models_trace_exactly_like_brute_force() {
         let manifest = Manifest::load(&dir.join("m.json")).unwrap();
         let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
         let triangles = geometry.triangles.clone();
-        let scene = Scene::build(geometry);
+        let scene = Scene::build(&geometry);
         let (lo, hi) = triangles.iter().flatten().fold(
             (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
             |(lo, hi), v| {

@@ -89,7 +89,7 @@ fn rays_through_shared_vertices_and_edges_of_closed_meshes_never_leak() {
                 DMat4::from_translation(offset) * DMat4::from_scale(DVec3::splat(scale));
             let world = placed(geometry, transform);
             let triangles = world.triangles.clone();
-            let scene = Scene::build(world);
+            let scene = Scene::build(&world);
             let (mut leaks, mut control_leaks) = (0, 0);
             for inside in interior {
                 let origin = offset + *inside * scale;
@@ -227,7 +227,7 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
     );
     for preset in BuildPreset::ALL {
         let scene = Scene::build_with(
-            SceneGeometry {
+            &SceneGeometry {
                 triangles: triangles.clone(),
                 ..SceneGeometry::default()
             },
@@ -254,7 +254,7 @@ fn ten_thousand_spheres_trace_like_brute_force() {
             radius: numbers.range(0.01, 1.5),
         })
         .collect();
-    let scene = Scene::build(SceneGeometry {
+    let scene = Scene::build(&SceneGeometry {
         spheres: spheres.clone(),
         ..SceneGeometry::default()
     });
@@ -315,7 +315,7 @@ fn a_deep_tree_never_overflows_the_traversal_stack() {
         .push(Bvh2Node::new(aabb(&bounds[m - 1]), 1, (m - 1) as u32));
     bvh2.primitive_indices = (0..m as u32).collect();
 
-    let bvh: Bvh<f32> = Bvh::from_bvh2(&bvh2, &bounds, |prims| (prims[0], 1));
+    let bvh: Bvh<f32> = Bvh::from_bvh2(&bvh2, 1, |prims| (prims[0], 1));
     assert!(bvh.stack_bound() > 1000, "bound {}", bvh.stack_bound());
 
     let origin = glam::Vec3::new(0.0, 0.0, 0.0);
@@ -348,7 +348,7 @@ fn a_deep_tree_never_overflows_the_traversal_stack() {
 fn hits_closer_than_1e_4_count_when_tmin_is_zero() {
     // obvhs' CWBVH node test starts every box at t = 1e-4 whatever the ray's tmin.
     let tri = [[-1.0, -1.0, 5e-5], [1.0, -1.0, 5e-5], [0.0, 1.0, 5e-5]];
-    let scene = Scene::build(SceneGeometry {
+    let scene = Scene::build(&SceneGeometry {
         triangles: vec![tri],
         ..SceneGeometry::default()
     });
@@ -365,7 +365,7 @@ fn tiny_and_zero_direction_components_find_real_hits() {
     // Tiny: obvhs' safe_inverse turns 1e-9 into ±1/ε and misses this triangle, reached at
     // x = 1e8 where y has climbed to 0.1.
     let far = [[1.0e8, 0.05, -1.0], [1.0e8, 0.15, -1.0], [1.0e8, 0.1, 1.0]];
-    let scene = Scene::build(SceneGeometry {
+    let scene = Scene::build(&SceneGeometry {
         triangles: vec![far],
         ..SceneGeometry::default()
     });
@@ -380,7 +380,7 @@ fn tiny_and_zero_direction_components_find_real_hits() {
 
     // Zero: rays along +z starting exactly in the plane of a cube face (so ∞·0 appears in
     // the box test) and through the cube's edges: each must hit the near face at z = -1.
-    let scene = Scene::build(placed(
+    let scene = Scene::build(&placed(
         &procedural::cube(),
         DMat4::from_scale(DVec3::splat(2.0)),
     ));
@@ -482,7 +482,7 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
     for triangles in [soup_triangles, grid.triangles, ico.triangles] {
         for preset in [BuildPreset::Fast, BuildPreset::Medium] {
             let mut scene = Scene::build_with(
-                SceneGeometry {
+                &SceneGeometry {
                     triangles: triangles.clone(),
                     ..SceneGeometry::default()
                 },
@@ -555,7 +555,7 @@ fn rays_through_shared_vertices_find_the_same_nearest_hit_in_any_visiting_order(
                 rays.push(ray(DVec3::ZERO, DVec3::from_array(d)));
             }
         }
-        let mut scene = Scene::build(geometry.clone());
+        let mut scene = Scene::build(&geometry);
         let mut paths = Vec::new();
         if scene.uses_simd() {
             let mut batch = vec![None; rays.len()];

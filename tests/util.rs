@@ -270,3 +270,17 @@ pub fn assert_close(got: f32, expected: f64) {
         "{got} is not within 4 ulps of {expected}"
     );
 }
+
+/// The folder an environment variable names, made absolute (tests write manifests
+/// elsewhere that refer to it).
+pub fn folder(variable: &str) -> PathBuf {
+    let value = std::env::var_os(variable)
+        .unwrap_or_else(|| panic!("set {variable} to run this test (see tests/real_models.rs)"));
+    let path = PathBuf::from(value);
+    assert!(
+        path.is_dir(),
+        "{variable}={} is not a folder",
+        path.display()
+    );
+    std::fs::canonicalize(path).unwrap()
+}

@@ -1,0 +1,264 @@
+//! Which nodes of a binary tree become the nodes and leaves of an 8-wide one: the
+//! SAH-optimal collapse of Ylitie, Karras and Laine ("Efficient Incoherent Ray Traversal
+//! on GPUs Through Compressed Wide BVHs", HPG 2017), as obvhs' `bvh2_to_cwbvh` computes it
+//! (same costs, same tie-breaking, so the same trees), but in parallel, without recursion
+//! deeper than a few levels, and without quantizing boxes we do not use.
+//!
+//! For each binary node `n` and each `i` in `0..7`, the dynamic programme finds the cheapest
+//! way to represent `n`'s subtree as at most `i + 1` subtrees hanging from a wide node:
+//! `i = 0` is one slot (a leaf of at most `max_leaf` primitives, or a wide node of its
+//! own, whose eight slots are shared between the two children); `i > 0` shares `i + 1`
+//! slots between the children or takes the answer for fewer slots.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use obvhs::bvh2::Bvh2;
+
+/// Slots of a wide node.
+const SLOTS: usize = 8;
+/// Cost of testing one primitive, against 1 for testing one node's box, per unit of area.
+const PRIMITIVE_COST: f32 = 0.3;
+/// Levels of the binary tree below which subtrees are costed in parallel.
+const PARALLEL_LEVELS: u32 = 10;
+/// Levels costed by plain recursion; deeper subtrees (degenerate trees) use an explicit
+/// stack.
+const RECURSION_LEVELS: u32 = 64;
+
+/// What a binary node does with `i + 1` available slots.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    /// Its whole subtree is one leaf.
+    Leaf,
+    /// It is a wide node of its own.
+    Node,
+    /// It hands its slots on to its two children (`left + 1` and `right + 1` each).
+    Split,
+}
+
+/// One decision: the kind, and for `Node`/`Split` how many slots (minus one) each child
+/// gets. Seven of them fit one `u64`, a byte each.
+#[derive(Debug, Clone, Copy)]
+struct Choice {
+    kind: Kind,
+    left: u8,
+    right: u8,
+}
+
+impl Choice {
+    fn pack(self) -> u8 {
+        let kind = match self.kind {
+            Kind::Leaf => 0,
+            Kind::Node => 1,
+            Kind::Split => 2,
+        };
+        kind << 6 | self.left << 3 | self.right
+    }
+
+    fn unpack(byte: u8) -> Choice {
+        Choice {
+            kind: match byte >> 6 {
+                0 => Kind::Leaf,
+                1 => Kind::Node,
+                _ => Kind::Split,
+            },
+            left: byte >> 3 & 7,
+            right: byte & 7,
+        }
+    }
+}
+
+/// The collapse of one binary tree: for each binary node, its seven choices.
+pub struct Collapse<'a> {
+    bvh2: &'a Bvh2,
+    choices: Vec<AtomicU64>,
+}
+
+impl<'a> Collapse<'a> {
+    /// Runs the dynamic programme over `bvh2` (its leaves may hold several primitives; a
+    /// leaf is never split, and a subtree becomes a leaf only if it holds at most
+    /// `max_leaf` primitives).
+    pub fn new(bvh2: &'a Bvh2, max_leaf: u32) -> Collapse<'a> {
+        let choices = (0..bvh2.nodes.len()).map(|_| AtomicU64::new(0)).collect();
+        let collapse = Collapse { bvh2, choices };
+        if !bvh2.nodes.is_empty() {
+            collapse.cost_parallel(0, 0, max_leaf);
+        }
+        collapse
+    }
+
+    /// Whether binary node `n`, given a slot of its own, is a leaf.
+    pub fn is_leaf(&self, n: usize) -> bool {
+        self.bvh2.nodes[n].is_leaf() || self.choice(n, 0).kind == Kind::Leaf
+    }
+
+    /// The binary nodes that fill the slots of the wide node made of binary node `n`, in
+    /// order (at most eight). A leaf `n` fills one slot itself.
+    pub fn children(&self, n: usize, out: &mut Vec<usize>) {
+        out.clear();
+        if self.bvh2.nodes[n].is_leaf() {
+            out.push(n);
+        } else {
+            self.gather(n, 0, out);
+        }
+        debug_assert!(out.len() <= SLOTS);
+    }
+
+    fn gather(&self, n: usize, i: u8, out: &mut Vec<usize>) {
+        let choice = self.choice(n, i);
+        let first = self.bvh2.nodes[n].first_index as usize;
+        for (child, slots) in [(first, choice.left), (first + 1, choice.right)] {
+            if !self.bvh2.nodes[child].is_leaf() && self.choice(child, slots).kind == Kind::Split {
+                self.gather(child, slots, out);
+            } else {
+                out.push(child);
+            }
+        }
+    }
+
+    fn choice(&self, n: usize, i: u8) -> Choice {
+        let packed = self.choices[n].load(Ordering::Relaxed);
+        Choice::unpack((packed >> (8 * i)) as u8)
+    }
+
+    fn store(&self, n: usize, choices: &[Choice; SLOTS - 1]) {
+        let packed = (choices.iter().enumerate())
+            .fold(0u64, |acc, (i, c)| acc | u64::from(c.pack()) << (8 * i));
+        self.choices[n].store(packed, Ordering::Relaxed);
+    }
+
+    /// Costs of node `n`'s subtree, the top levels in parallel.
+    fn cost_parallel(&self, n: usize, level: u32, max_leaf: u32) -> Costs {
+        let node = &self.bvh2.nodes[n];
+        if node.is_leaf() {
+            return self.leaf(n);
+        }
+        if level >= PARALLEL_LEVELS {
+            return self.cost_recursive(n, level, max_leaf);
+        }
+        let first = node.first_index as usize;
+        let (left, right) = rayon::join(
+            || self.cost_parallel(first, level + 1, max_leaf),
+            || self.cost_parallel(first + 1, level + 1, max_leaf),
+        );
+        self.combine(n, &left, &right, max_leaf)
+    }
+
+    /// Costs of node `n`'s subtree by recursion, down to [`RECURSION_LEVELS`].
+    fn cost_recursive(&self, n: usize, level: u32, max_leaf: u32) -> Costs {
+        let node = &self.bvh2.nodes[n];
+        if node.is_leaf() {
+            return self.leaf(n);
+        }
+        if level >= RECURSION_LEVELS {
+            return self.cost_subtree(n, max_leaf);
+        }
+        let first = node.first_index as usize;
+        let left = self.cost_recursive(first, level + 1, max_leaf);
+        let right = self.cost_recursive(first + 1, level + 1, max_leaf);
+        self.combine(n, &left, &right, max_leaf)
+    }
+
+    /// Costs of node `n`'s subtree, in post-order with an explicit stack (a degenerate
+    /// tree may be as deep as it has primitives).
+    fn cost_subtree(&self, root: usize, max_leaf: u32) -> Costs {
+        let mut pending = vec![(root, false)];
+        let mut done: Vec<Costs> = Vec::new();
+        while let Some((n, children_done)) = pending.pop() {
+            let node = &self.bvh2.nodes[n];
+            if node.is_leaf() {
+                done.push(self.leaf(n));
+            } else if children_done {
+                let right = done.pop().expect("right child costed");
+                let left = done.pop().expect("left child costed");
+                done.push(self.combine(n, &left, &right, max_leaf));
+            } else {
+                let first = node.first_index as usize;
+                pending.extend([(n, true), (first + 1, false), (first, false)]);
+            }
+        }
+        done.pop().expect("root costed")
+    }
+
+    fn leaf(&self, n: usize) -> Costs {
+        let node = &self.bvh2.nodes[n];
+        let cost = node.aabb().half_area() * node.prim_count as f32 * PRIMITIVE_COST;
+        // Every choice is `Leaf` (all zero bits).
+        self.choices[n].store(0, Ordering::Relaxed);
+        Costs {
+            cost: [cost; SLOTS - 1],
+            primitives: node.prim_count,
+        }
+    }
+
+    fn combine(&self, n: usize, left: &Costs, right: &Costs, max_leaf: u32) -> Costs {
+        let area = self.bvh2.nodes[n].aabb().half_area();
+        let primitives = left.primitives + right.primitives;
+        let mut cost = [0f32; SLOTS - 1];
+        let mut choices = [Choice {
+            kind: Kind::Leaf,
+            left: 0,
+            right: 0,
+        }; SLOTS - 1];
+
+        // One slot: a leaf, or a wide node sharing its eight slots between the children.
+        let as_leaf = if primitives <= max_leaf {
+            primitives as f32 * area * PRIMITIVE_COST
+        } else {
+            f32::INFINITY
+        };
+        let mut shared = f32::INFINITY;
+        let (mut l, mut r) = (u8::MAX, u8::MAX);
+        for k in 0..SLOTS - 1 {
+            let c = left.cost[k] + right.cost[SLOTS - 2 - k];
+            if c < shared {
+                shared = c;
+                (l, r) = (k as u8, (SLOTS - 2 - k) as u8);
+            }
+        }
+        let as_node = shared + area;
+        (cost[0], choices[0]) = if as_leaf < as_node {
+            (
+                as_leaf,
+                Choice {
+                    kind: Kind::Leaf,
+                    left: l,
+                    right: r,
+                },
+            )
+        } else {
+            (
+                as_node,
+                Choice {
+                    kind: Kind::Node,
+                    left: l,
+                    right: r,
+                },
+            )
+        };
+
+        // More slots: share them between the children, or do as with one fewer.
+        for i in 1..SLOTS - 1 {
+            cost[i] = cost[i - 1];
+            choices[i] = choices[i - 1];
+            for k in 0..i {
+                let c = left.cost[k] + right.cost[i - k - 1];
+                if c < cost[i] {
+                    cost[i] = c;
+                    choices[i] = Choice {
+                        kind: Kind::Split,
+                        left: k as u8,
+                        right: (i - k - 1) as u8,
+                    };
+                }
+            }
+        }
+        self.store(n, &choices);
+        Costs { cost, primitives }
+    }
+}
+
+/// A subtree's cost for each number of slots, and its primitive count.
+struct Costs {
+    cost: [f32; SLOTS - 1],
+    primitives: u32,
+}
