@@ -144,6 +144,28 @@ fn scanned_models_render_as_a_batch_with_shared_loads() {
 }
 
 #[test]
+#[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
+fn the_fast_obj_reader_reads_every_scanned_model_exactly_as_tobj_does() {
+    let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
+    assert!(models.len() >= 5, "{models:?}");
+    let mut fast = 0;
+    for model in &models {
+        let bytes = std::fs::read(model).unwrap();
+        let reference = raybatch::obj::parse_with_tobj(&bytes, model).unwrap();
+        if let Some(mesh) = raybatch::obj::fast::parse(&bytes) {
+            assert!(mesh == reference, "{} differs from tobj", model.display());
+            fast += 1;
+        }
+    }
+    // Real files are what the fast reader is for: it must not decline them all.
+    assert!(
+        fast * 2 > models.len(),
+        "only {fast} of {} read fast",
+        models.len()
+    );
+}
+
+#[test]
 #[ignore = "needs RAYBATCH_GLTF (Debian's assimp-testmodels glTF2 folder)"]
 fn every_debian_gltf_file_loads_or_is_refused_cleanly() {
     let files = files_with(&folder("RAYBATCH_GLTF"), &["gltf", "glb"]);

@@ -1,6 +1,4 @@
-//! Wavefront OBJ through `tobj`: every object and group in file order, each polygon
-//! `v0 v1 … vn` split into the fan `(v0, vi, vi+1)`. Points, lines and material libraries
-//! are not read.
+//! The reference OBJ reader, through `tobj`, with faults located by line.
 
 use std::io::Cursor;
 use std::path::Path;

@@ -1,0 +1,443 @@
+//! A parallel reader for the OBJ subset nearly every file uses. It gives exactly what the
+//! `tobj` reader gives (same vertices in the same order, same triangles), and declines
+//! (returns `None`) everything else, so that `tobj` reads it. The subset:
+//!
+//! - valid UTF-8, read line by line and word by word as `tobj` reads it;
+//! - `v x y z` with exactly three numbers; `vt` and `vn` with at least two and three
+//!   (counted and checked, not kept);
+//! - `f` with three or more corners `v`, `v/vt`, `v//vn` or `v/vt/vn`, each index counted
+//!   from 1 or, if negative, back from the last element read, and referring to an
+//!   element already read;
+//! - `o` and `g` (a new object once the current one has faces), `usemtl` with a name, and
+//!   every other keyword and comment (ignored, as `tobj` ignores them).
+//!
+//! Declined: a `v` with a weight or colours, points and lines (`l`), faces of fewer than
+//! three corners, references to elements not yet read, and every fault.
+//!
+//! The text is cut into chunks at line ends, read in parallel. A chunk does not know how
+//! many elements come before it, so it keeps negative indices relative to its own start
+//! and notes the furthest reference either way; once the chunks' counts are summed, the
+//! references are checked and resolved. A last pass numbers each object's vertices in
+//! order of first use, as `tobj` does.
+
+use std::ops::Range;
+
+use glam::DMat4;
+use rayon::prelude::*;
+
+use crate::mesh::{Geometry, Instance, MeshFile};
+
+/// Bytes per chunk, about (chunks end at line ends).
+const CHUNK: usize = 1 << 20;
+
+/// Positions, texture coordinates, normals: what faces refer to.
+const KINDS: usize = 3;
+
+/// What one chunk contributes.
+#[derive(Debug)]
+struct Chunk {
+    /// Elements of each kind read.
+    counts: [usize; KINDS],
+    positions: Vec<[f32; 3]>,
+    /// Corners per face, and every face's corners as position indices (from 0, over the
+    /// whole file; a relative index holds a placeholder until it is resolved).
+    arities: Vec<u32>,
+    corners: Vec<u32>,
+    /// Relative position indices: where in `corners`, and the index counted from the
+    /// chunk's first position (negative for one in an earlier chunk).
+    relative: Vec<(usize, i64)>,
+    /// Per kind, the largest `index − elements read so far` over indices counted from 1
+    /// (must stay below the elements before the chunk), and the smallest index counted
+    /// from the chunk's start over negative ones (must not reach before the file's start).
+    forward: [i64; KINDS],
+    backward: [i64; KINDS],
+    /// For each `o` or `g` line, the faces of the chunk read before it.
+    breaks: Vec<usize>,
+}
+
+impl Chunk {
+    fn new() -> Chunk {
+        Chunk {
+            counts: [0; KINDS],
+            positions: Vec::new(),
+            arities: Vec::new(),
+            corners: Vec::new(),
+            relative: Vec::new(),
+            forward: [i64::MIN; KINDS],
+            backward: [i64::MAX; KINDS],
+            breaks: Vec::new(),
+        }
+    }
+}
+
+/// The file's mesh, or `None` if the file is outside the subset (see the module doc).
+pub fn parse(bytes: &[u8]) -> Option<MeshFile> {
+    parse_in_chunks(bytes, CHUNK)
+}
+
+/// [`parse`] with chunks of about `chunk` bytes (tests use tiny ones).
+pub(super) fn parse_in_chunks(bytes: &[u8], chunk: usize) -> Option<MeshFile> {
+    let text = std::str::from_utf8(bytes).ok()?;
+    let mut chunks: Vec<Chunk> = chunks(text, chunk.max(1))
+        .into_par_iter()
+        .map(|r| read(&text[r]))
+        .collect::<Option<_>>()?;
+    // What comes before each chunk is now known: check and resolve its references.
+    let mut before = [0usize; KINDS];
+    for chunk in &mut chunks {
+        for (kind, seen) in before.iter_mut().enumerate() {
+            let start = *seen as i64;
+            if chunk.forward[kind] >= start || chunk.backward[kind].saturating_add(start) < 0 {
+                return None;
+            }
+            *seen += chunk.counts[kind];
+        }
+        let start = (before[0] - chunk.counts[0]) as i64;
+        for &(at, index) in &chunk.relative {
+            chunk.corners[at] = u32::try_from(start + index).ok()?;
+        }
+    }
+    if u32::try_from(before[0]).is_err() {
+        return None;
+    }
+    Some(assemble(&chunks, before[0]))
+}
+
+/// Ranges of about `size` bytes, each ending just after a line end (or at the end).
+fn chunks(text: &str, size: usize) -> Vec<Range<usize>> {
+    let bytes = text.as_bytes();
+    let mut ranges = Vec::new();
+    let mut start = 0;
+    while start < bytes.len() {
+        let mut end = (start + size).min(bytes.len());
+        if let Some(newline) = bytes[end..].iter().position(|&b| b == b'\n') {
+            end += newline + 1;
+        } else {
+            end = bytes.len();
+        }
+        ranges.push(start..end);
+        start = end;
+    }
+    ranges
+}
+
+/// Reads one chunk.
+fn read(text: &str) -> Option<Chunk> {
+    let mut out = Chunk::new();
+    for_each_line(text, |words, line| {
+        match words.next() {
+            Some("v") => {
+                let mut p = [0f32; 3];
+                for c in &mut p {
+                    *c = words.next()?.parse().ok()?;
+                }
+                if words.next().is_some() {
+                    return None;
+                }
+                out.positions.push(p);
+                out.counts[0] += 1;
+            }
+            Some("vt") => {
+                numbers(words, 2)?;
+                out.counts[1] += 1;
+            }
+            Some("vn") => {
+                numbers(words, 3)?;
+                out.counts[2] += 1;
+            }
+            Some("f") => {
+                let before = out.corners.len();
+                for corner in words {
+                    out.corner(corner.as_bytes())?;
+                }
+                let arity = out.corners.len() - before;
+                if arity < 3 {
+                    return None;
+                }
+                out.arities.push(arity as u32);
+            }
+            Some("o" | "g") => out.breaks.push(out.arities.len()),
+            // As tobj reads the name: after the first space.
+            Some("usemtl")
+                if line
+                    .get()
+                    .split_once(' ')
+                    .unwrap_or_default()
+                    .1
+                    .trim()
+                    .is_empty() =>
+            {
+                return None;
+            }
+            Some("l") => return None,
+            _ => {}
+        }
+        Some(())
+    })?;
+    Some(out)
+}
+
+/// Calls `f` with the words of each line (as `str::split_whitespace`, and so `tobj`,
+/// finds them) and the line; stops at the first `None`. ASCII text is scanned byte by
+/// byte in one pass, which finds the same words much faster.
+fn for_each_line<'a>(
+    text: &'a str,
+    mut f: impl FnMut(&mut Words<'a>, Line<'a>) -> Option<()>,
+) -> Option<()> {
+    if !text.is_ascii() {
+        let mut start = 0;
+        for line in text.split('\n') {
+            f(
+                &mut Words::Unicode(line.split_whitespace()),
+                Line { text, start },
+            )?;
+            start += line.len() + 1;
+        }
+        return Some(());
+    }
+    let bytes = text.as_bytes();
+    let mut at = 0;
+    while at < bytes.len() {
+        let mut words = Words::Ascii { text, at };
+        f(&mut words, Line { text, start: at })?;
+        // Past what the handler left unread, and the line end.
+        if let Words::Ascii { at: stop, .. } = words {
+            at = stop;
+        }
+        while at < bytes.len() && bytes[at] != b'\n' {
+            at += 1;
+        }
+        at += 1;
+    }
+    Some(())
+}
+
+/// A line of the text, found only if asked for.
+#[derive(Clone, Copy)]
+struct Line<'a> {
+    text: &'a str,
+    start: usize,
+}
+
+impl<'a> Line<'a> {
+    fn get(self) -> &'a str {
+        let rest = &self.text[self.start..];
+        rest.split('\n').next().unwrap_or_default()
+    }
+}
+
+/// The words of one line: ASCII text scanned from `at` up to (not past) the line end,
+/// or any text by `split_whitespace`.
+enum Words<'a> {
+    Ascii { text: &'a str, at: usize },
+    Unicode(std::str::SplitWhitespace<'a>),
+}
+
+/// The ASCII characters that are Unicode white space, other than the line feed: tab,
+/// vertical tab, form feed, carriage return and space.
+fn is_space(b: u8) -> bool {
+    matches!(b, b'\t' | 0x0b..=b'\r' | b' ')
+}
+
+impl<'a> Iterator for Words<'a> {
+    type Item = &'a str;
+
+    #[inline]
+    fn next(&mut self) -> Option<&'a str> {
+        let (text, at) = match self {
+            Words::Ascii { text, at } => (*text, at),
+            Words::Unicode(words) => return words.next(),
+        };
+        let bytes = text.as_bytes();
+        while *at < bytes.len() && is_space(bytes[*at]) {
+            *at += 1;
+        }
+        if *at == bytes.len() || bytes[*at] == b'\n' {
+            return None;
+        }
+        let start = *at;
+        while *at < bytes.len() && !is_space(bytes[*at]) && bytes[*at] != b'\n' {
+            *at += 1;
+        }
+        Some(&text[start..*at])
+    }
+}
+
+/// Checks that the next `n` words are numbers.
+fn numbers(words: &mut Words<'_>, n: usize) -> Option<()> {
+    for _ in 0..n {
+        words.next()?.parse::<f32>().ok()?;
+    }
+    Some(())
+}
+
+impl Chunk {
+    /// Adds a face corner `v`, `v/vt`, `v//vn` or `v/vt/vn` (empty parts skipped, as
+    /// `tobj` skips them), noting how far its indices reach.
+    fn corner(&mut self, corner: &[u8]) -> Option<()> {
+        let mut parts = corner.split(|&b| b == b'/');
+        let position = self.reference(parts.next()?, 0)?;
+        match position {
+            Ok(index) => self.corners.push(index),
+            Err(relative) => {
+                self.relative.push((self.corners.len(), relative));
+                self.corners.push(0);
+            }
+        }
+        for kind in 1..KINDS {
+            match parts.next() {
+                Some([]) | None => {}
+                Some(part) => {
+                    let _checked = self.reference(part, kind)?;
+                }
+            }
+        }
+        if parts.any(|p| !p.is_empty()) {
+            return None;
+        }
+        Some(())
+    }
+
+    /// An index of `kind` counted from 1 (`Ok`, from 0) or back from the last element
+    /// read (`Err`, from the chunk's first element), its reach noted.
+    fn reference(&mut self, word: &[u8], kind: usize) -> Option<Result<u32, i64>> {
+        let index = i64::try_from(integer(word)?).ok()?;
+        let read = self.counts[kind] as i64;
+        if index > 0 {
+            self.forward[kind] = self.forward[kind].max(index - 1 - read);
+            Some(Ok(u32::try_from(index - 1).ok()?))
+        } else if index < 0 {
+            self.backward[kind] = self.backward[kind].min(read + index);
+            Some(Err(read + index))
+        } else {
+            None
+        }
+    }
+}
+
+/// An integer as `isize::from_str` reads it: an optional sign and at least one digit.
+fn integer(word: &[u8]) -> Option<isize> {
+    let (negative, digits) = match word {
+        [b'-', rest @ ..] => (true, rest),
+        [b'+', rest @ ..] => (false, rest),
+        _ => (false, word),
+    };
+    if digits.is_empty() {
+        return None;
+    }
+    let mut value: isize = 0;
+    for &d in digits {
+        if !d.is_ascii_digit() {
+            return None;
+        }
+        let d = isize::from(d - b'0');
+        value = value.checked_mul(10)?;
+        value = if negative {
+            value.checked_sub(d)?
+        } else {
+            value.checked_add(d)?
+        };
+    }
+    Some(value)
+}
+
+/// One geometry: objects in file order, each object's vertices numbered in order of first
+/// use, polygons as fans from their first corner.
+fn assemble(chunks: &[Chunk], vertices: usize) -> MeshFile {
+    let all: Vec<[f32; 3]> = chunks
+        .iter()
+        .flat_map(|c| c.positions.iter().copied())
+        .collect();
+    let mut geometry = Geometry {
+        positions: Vec::new(),
+        triangles: Vec::with_capacity(chunks.iter().map(|c| c.corners.len()).sum::<usize>() / 3),
+    };
+    // `object_of[v]` is the object that last used vertex `v`, `index_of[v]` its index.
+    let mut object_of = vec![u32::MAX; vertices];
+    let mut index_of = vec![0u32; vertices];
+    let mut object = 0u32;
+    let mut faces_in_object = 0usize;
+    let mut face = Vec::new();
+    for chunk in chunks {
+        let mut breaks = chunk.breaks.iter().peekable();
+        let mut corner = 0;
+        for (f, &arity) in chunk.arities.iter().enumerate() {
+            while breaks.next_if(|&&b| b <= f).is_some() {
+                if faces_in_object > 0 {
+                    object += 1;
+                    faces_in_object = 0;
+                }
+            }
+            face.clear();
+            for &v in &chunk.corners[corner..corner + arity as usize] {
+                let v = v as usize;
+                if object_of[v] != object {
+                    object_of[v] = object;
+                    index_of[v] = geometry.positions.len() as u32;
+                    geometry.positions.push(all[v]);
+                }
+                face.push(index_of[v]);
+            }
+            corner += arity as usize;
+            for k in 1..face.len() - 1 {
+                geometry.triangles.push([face[0], face[k], face[k + 1]]);
+            }
+            faces_in_object += 1;
+        }
+        if breaks.next().is_some() && faces_in_object > 0 {
+            object += 1;
+            faces_in_object = 0;
+        }
+    }
+    MeshFile {
+        geometries: vec![geometry],
+        instances: vec![Instance {
+            geometry: 0,
+            transform: DMat4::IDENTITY,
+        }],
+        warnings: Vec::new(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ascii_white_space_is_what_unicode_calls_white_space() {
+        for b in 0u8..128 {
+            let space = is_space(b) || b == b'\n';
+            assert_eq!(space, char::from(b).is_whitespace(), "byte {b}");
+        }
+    }
+
+    #[test]
+    fn integers_are_read_as_the_standard_library_reads_them() {
+        let words = [
+            "0",
+            "1",
+            "+1",
+            "-1",
+            "-",
+            "+",
+            "",
+            "12a",
+            "007",
+            "-0",
+            "+-1",
+            "1 ",
+            "9223372036854775807",
+            "9223372036854775808",
+            "-9223372036854775808",
+            "-9223372036854775809",
+            "١",
+        ];
+        for word in words {
+            assert_eq!(
+                integer(word.as_bytes()),
+                word.parse::<isize>().ok(),
+                "{word:?}"
+            );
+        }
+    }
+}
