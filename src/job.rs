@@ -1,20 +1,23 @@
 //! Jobs and batches: one manifest in, one image out, and a report either way.
 //!
 //! A [`Batch`] runs jobs one after another (each renders on all threads), shares mesh files
-//! between them, and refuses to let two jobs write the same file. A failed job writes
+//! between them (and the triangle tree, while consecutive jobs place the same meshes the
+//! same way), and refuses to let two jobs write the same file. A failed job writes
 //! nothing and does not stop the batch.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use serde_json::json;
 
+use crate::bvh::BuildPreset;
 use crate::error::{Error, JobError};
 use crate::manifest::Manifest;
 use crate::mesh::MeshCache;
 use crate::render;
-use crate::scene::{Scene, SceneGeometry, Tracer};
+use crate::scene::{MeshPlacement, Scene, SceneGeometry, Tracer, TriangleTree};
 
 /// Settings shared by every job of a batch.
 #[derive(Debug, Clone, Default)]
@@ -69,6 +72,8 @@ pub struct JobReport {
     pub triangles: Option<usize>,
     pub spheres: Option<usize>,
     pub planes: Option<usize>,
+    /// Whether the triangle tree was the previous job's (same meshes, same transforms).
+    pub triangle_tree_reused: bool,
     /// Seconds reading the manifest and meshes, building trees, rendering, writing.
     pub load_s: f64,
     pub build_s: f64,
@@ -91,6 +96,7 @@ impl JobReport {
             triangles: None,
             spheres: None,
             planes: None,
+            triangle_tree_reused: false,
             load_s: 0.0,
             build_s: 0.0,
             render_s: 0.0,
@@ -119,6 +125,7 @@ impl JobReport {
             "triangles": self.triangles,
             "spheres": self.spheres,
             "planes": self.planes,
+            "triangle_tree_reused": self.triangle_tree_reused,
             "width": self.width,
             "height": self.height,
             "spp": self.spp,
@@ -139,6 +146,10 @@ pub struct Batch {
     meshes: MeshCache,
     /// Output files written so far, and the manifest that wrote each.
     written: HashMap<PathBuf, PathBuf>,
+    /// The last triangle tree built and the meshes it was built from, reused while jobs
+    /// place the same meshes the same way (only the last, so memory stays one scene's).
+    last_tree: Option<(Vec<MeshPlacement>, Arc<TriangleTree>)>,
+    tree_builds: usize,
 }
 
 impl Batch {
@@ -152,6 +163,33 @@ impl Batch {
     /// Mesh files read so far.
     pub fn meshes(&self) -> &MeshCache {
         &self.meshes
+    }
+
+    /// Triangle trees built so far (jobs that reuse the previous job's do not count).
+    pub fn triangle_tree_builds(&self) -> usize {
+        self.tree_builds
+    }
+
+    /// The scene of `geometry`, around the previous job's triangle tree if it has the
+    /// same triangles.
+    fn build_scene(&mut self, geometry: &SceneGeometry, report: &mut JobReport) -> Scene {
+        let preset = BuildPreset::default();
+        if geometry.triangles.is_empty() {
+            // Nothing to build, and the last tree stays for the jobs after this one.
+            return Scene::build_with(geometry, preset);
+        }
+        if let Some((sources, tree)) = &self.last_tree
+            && geometry.same_triangles_as(sources)
+        {
+            report.triangle_tree_reused = true;
+            return Scene::build_around(geometry, preset, Arc::clone(tree));
+        }
+        // Drop the old tree before building the new one, so two are never held at once.
+        self.last_tree = None;
+        let scene = Scene::build_with(geometry, preset);
+        self.tree_builds += 1;
+        self.last_tree = Some((geometry.sources.clone(), Arc::clone(scene.triangle_tree())));
+        scene
     }
 
     /// Renders the manifest at `path`. `progress` receives finished pixel counts.
@@ -196,7 +234,7 @@ impl Batch {
         report.load_s = start.elapsed().as_secs_f64();
         match self.options.backend {
             Backend::Raybatch => finish(
-                |g| Ok(Scene::build(g)),
+                |g, report| Ok(self.build_scene(g, report)),
                 geometry,
                 &manifest,
                 &output,
@@ -206,7 +244,7 @@ impl Batch {
             Backend::Embree => {
                 #[cfg(feature = "embree")]
                 finish(
-                    |g| {
+                    |g, _| {
                         crate::embree::EmbreeScene::build(g)
                             .map_err(|e| Error::Backend(e.to_string()))
                     },
@@ -238,7 +276,7 @@ impl Batch {
 
 /// Builds the tracer, renders and writes the image, recording the times in `report`.
 fn finish<T: Tracer>(
-    build: impl FnOnce(&SceneGeometry) -> Result<T, Error>,
+    build: impl FnOnce(&SceneGeometry, &mut JobReport) -> Result<T, Error>,
     geometry: SceneGeometry,
     manifest: &Manifest,
     output: &Path,
@@ -246,7 +284,7 @@ fn finish<T: Tracer>(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(), Error> {
     let start = Instant::now();
-    let scene = build(&geometry)?;
+    let scene = build(&geometry, report)?;
     // The scene holds its own copies: the placed triangles are not needed while rendering.
     drop(geometry);
     let counts = scene.counts();

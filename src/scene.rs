@@ -35,6 +35,26 @@ pub struct SceneGeometry {
     pub planes: Vec<Plane>,
     /// Skipped content worth telling the user about.
     pub warnings: Vec<String>,
+    /// Where `triangles` came from: each mesh file as read (shared through the batch's
+    /// [`MeshCache`]) and the manifest transform it was placed with, in manifest order.
+    /// Equal sources (same files, same transforms) mean equal triangles.
+    pub sources: Vec<MeshPlacement>,
+}
+
+/// A mesh file as read (shared through a [`MeshCache`]) and the transform that placed it.
+pub type MeshPlacement = (Arc<MeshFile>, DMat4);
+
+impl SceneGeometry {
+    /// Whether `self` and `other` were placed from the same mesh files, read once, with
+    /// the same transforms, so their triangles are the same.
+    pub fn same_triangles_as(&self, other: &[MeshPlacement]) -> bool {
+        self.sources.len() == other.len()
+            && self
+                .sources
+                .iter()
+                .zip(other)
+                .all(|((a, m), (b, n))| Arc::ptr_eq(a, b) && m == n)
+    }
 }
 
 impl SceneGeometry {
@@ -69,6 +89,7 @@ impl SceneGeometry {
             geometry
                 .add_mesh(&mesh, desc.transform, &desc.file)
                 .map_err(|source| Error::Mesh { key, source })?;
+            geometry.sources.push((mesh, desc.transform));
         }
         Ok(geometry)
     }
@@ -186,8 +207,8 @@ pub struct Scene {
     /// Spheres in manifest order, for looking up a hit.
     spheres_by_id: Vec<Sphere>,
     sphere_bvh: Bvh<f64>,
-    blocks: Vec<TriangleBlock>,
-    triangle_bvh: Bvh<f32>,
+    /// Shared, so that jobs of a batch with the same triangles build them once.
+    triangles: Arc<TriangleTree>,
     /// Whether the triangle tree is traversed by the AVX2 kernels ([`crate::simd`]).
     simd: bool,
     counts: SceneCounts,
@@ -202,22 +223,36 @@ impl Scene {
 
     /// Builds the trees with the given preset.
     pub fn build_with(geometry: &SceneGeometry, preset: BuildPreset) -> Scene {
-        let SceneGeometry {
-            triangles,
-            spheres,
-            planes,
-            ..
-        } = geometry;
+        let triangles = Arc::new(TriangleTree::build(&geometry.triangles, preset));
+        Scene::build_around(geometry, preset, triangles)
+    }
 
-        let (blocks, triangle_bvh) = build_triangles(triangles, preset);
+    /// Builds the scene around a triangle tree already built from `geometry.triangles`
+    /// (by [`TriangleTree::build`], perhaps for an earlier job); only the spheres' tree is
+    /// built.
+    ///
+    /// # Panics
+    /// If the tree holds a different number of triangles than `geometry`.
+    pub fn build_around(
+        geometry: &SceneGeometry,
+        preset: BuildPreset,
+        triangles: Arc<TriangleTree>,
+    ) -> Scene {
+        let SceneGeometry {
+            spheres, planes, ..
+        } = geometry;
+        assert_eq!(
+            triangles.len,
+            geometry.triangles.len(),
+            "another scene's tree"
+        );
         let (sphere_order, sphere_ids, sphere_bvh) = build_spheres(spheres, preset);
 
         let counts = SceneCounts {
-            triangles: triangles.len(),
+            triangles: triangles.len,
             spheres: spheres.len(),
             planes: planes.len(),
-            accel_bytes: blocks.len() * std::mem::size_of::<TriangleBlock>()
-                + triangle_bvh.memory_bytes()
+            accel_bytes: triangles.memory_bytes()
                 + sphere_order.len() * (std::mem::size_of::<Sphere>() + 4)
                 + sphere_bvh.memory_bytes(),
         };
@@ -227,16 +262,25 @@ impl Scene {
             sphere_ids,
             spheres_by_id: spheres.clone(),
             sphere_bvh,
-            simd: simd_available() && triangle_bvh.stack_bound() <= SIMD_STACK,
-            blocks,
-            triangle_bvh,
+            simd: simd_available() && triangles.bvh.stack_bound() <= SIMD_STACK,
+            triangles,
             counts,
         }
     }
 
+    /// The triangles' tree and blocks, to share with a later scene of the same triangles.
+    pub fn triangle_tree(&self) -> &Arc<TriangleTree> {
+        &self.triangles
+    }
+
+    /// The spheres' tree (for inspection and tests).
+    pub fn sphere_bvh(&self) -> &Bvh<f64> {
+        &self.sphere_bvh
+    }
+
     /// The triangle tree (for inspection and tests).
     pub fn triangle_bvh(&self) -> &Bvh<f32> {
-        &self.triangle_bvh
+        &self.triangles.bvh
     }
 
     /// Whether rays meet the triangles through the AVX2 kernels.
@@ -247,14 +291,14 @@ impl Scene {
     /// Turns the AVX2 kernels off (or back on where the CPU has them), to compare the two
     /// paths; both give bit-identical results.
     pub fn set_simd(&mut self, on: bool) {
-        self.simd = on && simd_available() && self.triangle_bvh.stack_bound() <= SIMD_STACK;
+        self.simd = on && simd_available() && self.triangles.bvh.stack_bound() <= SIMD_STACK;
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
     #[inline]
     pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
         let mut best = self.closest_analytic(ray);
-        if !self.triangle_bvh.is_empty() {
+        if !self.triangles.bvh.is_empty() {
             let r = TriangleRay::new(ray, best.map_or(ray.tmax, |h| h.t));
             if let Some((nearest, hit)) = self.nearest_triangle(&r) {
                 best = Some(Self::triangle_hit(nearest, hit));
@@ -308,7 +352,7 @@ impl Scene {
                 out[k] = self.closest_analytic(ray);
                 prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
             }
-            if self.triangle_bvh.is_empty() {
+            if self.triangles.bvh.is_empty() {
                 continue;
             }
             let prepared = &prepared[..rays.len()];
@@ -318,7 +362,12 @@ impl Scene {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
             let traced = self.simd
                 && unsafe {
-                    crate::packet::closest(&self.triangle_bvh, &self.blocks, prepared, triangles)
+                    crate::packet::closest(
+                        &self.triangles.bvh,
+                        &self.triangles.blocks,
+                        prepared,
+                        triangles,
+                    )
                 };
             #[cfg(not(target_arch = "x86_64"))]
             let traced = false;
@@ -350,7 +399,7 @@ impl Scene {
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
                 *out = self.any_analytic(ray);
             }
-            if self.triangle_bvh.is_empty() {
+            if self.triangles.bvh.is_empty() {
                 continue;
             }
             #[cfg(target_arch = "x86_64")]
@@ -366,8 +415,8 @@ impl Scene {
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
                 if unsafe {
                     crate::packet::any(
-                        &self.triangle_bvh,
-                        &self.blocks,
+                        &self.triangles.bvh,
+                        &self.triangles.blocks,
                         &prepared[..n],
                         &mut triangles[..n],
                     )
@@ -391,18 +440,24 @@ impl Scene {
         #[cfg(target_arch = "x86_64")]
         if self.simd {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            return unsafe { crate::simd::closest(&self.triangle_bvh, &self.blocks, *r) };
+            return unsafe {
+                crate::simd::closest(&self.triangles.bvh, &self.triangles.blocks, *r)
+            };
         }
         let (sheared, boxes) = (r.sheared(), r.boxes());
         let mut nearest = Nearest::before(r.tmax);
         let mut found = None;
         let mut tmax = r.tmax;
-        self.triangle_bvh
+        self.triangles
+            .bvh
             .closest(&boxes, &mut tmax, |first, count, tmax| {
                 for b in first..first + count {
-                    if let Some(hit) =
-                        self.blocks[b as usize].intersect(&sheared, r.tmin, b, &mut nearest)
-                    {
+                    if let Some(hit) = self.triangles.blocks[b as usize].intersect(
+                        &sheared,
+                        r.tmin,
+                        b,
+                        &mut nearest,
+                    ) {
                         found = Some(hit);
                     }
                 }
@@ -415,7 +470,7 @@ impl Scene {
     #[inline]
     pub fn any_hit(&self, ray: &Ray) -> bool {
         self.any_analytic(ray)
-            || (!self.triangle_bvh.is_empty()
+            || (!self.triangles.bvh.is_empty()
                 && self.any_triangle(&TriangleRay::new(ray, ray.tmax)))
     }
 
@@ -445,13 +500,13 @@ impl Scene {
         #[cfg(target_arch = "x86_64")]
         if self.simd {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            return unsafe { crate::simd::any(&self.triangle_bvh, &self.blocks, *r) };
+            return unsafe { crate::simd::any(&self.triangles.bvh, &self.triangles.blocks, *r) };
         }
         let (sheared, boxes) = (r.sheared(), r.boxes());
-        self.triangle_bvh.any(&boxes, r.tmax, |first, count| {
+        self.triangles.bvh.any(&boxes, r.tmax, |first, count| {
             (first..first + count).any(|b| {
                 let mut nearest = Nearest::before(r.tmax);
-                self.blocks[b as usize]
+                self.triangles.blocks[b as usize]
                     .intersect(&sheared, r.tmin, b, &mut nearest)
                     .is_some()
             })
@@ -472,7 +527,7 @@ impl Scene {
     }
 
     fn slot(&self, slot: u32) -> (&TriangleBlock, usize) {
-        let block = &self.blocks[slot as usize / BLOCK];
+        let block = &self.triangles.blocks[slot as usize / BLOCK];
         (block, slot as usize % BLOCK)
     }
 }
@@ -577,6 +632,34 @@ impl TriangleRay {
     #[inline(always)]
     pub fn boxes(&self) -> BoxRay<f32> {
         BoxRay::new(self.origin, self.direction, self.tmin)
+    }
+}
+
+/// The triangles of a scene, ready for rays: their tree and the blocks its leaves point
+/// into. Built once per set of placed triangles and shared between the scenes (jobs) that
+/// have exactly those triangles.
+#[derive(Debug)]
+pub struct TriangleTree {
+    blocks: Vec<TriangleBlock>,
+    bvh: Bvh<f32>,
+    /// Triangles it was built from.
+    len: usize,
+}
+
+impl TriangleTree {
+    /// Builds the tree of `triangles` (which may be empty) with `preset`.
+    pub fn build(triangles: &[[[f32; 3]; 3]], preset: BuildPreset) -> TriangleTree {
+        let (blocks, bvh) = build_triangles(triangles, preset);
+        TriangleTree {
+            blocks,
+            bvh,
+            len: triangles.len(),
+        }
+    }
+
+    /// Bytes of blocks and tree nodes.
+    pub fn memory_bytes(&self) -> usize {
+        self.blocks.len() * std::mem::size_of::<TriangleBlock>() + self.bvh.memory_bytes()
     }
 }
 

@@ -17,6 +17,8 @@
 //!   files, batches going on, exit statuses.
 //! - `robustness`: watertightness, traversal against brute force, deep trees, tiny
 //!   direction components, tiny far spheres.
+//! - `skipping`: work a scene does not need is not done (trees, closest-hit searches,
+//!   normals, rereading and rebuilding a batch's shared mesh).
 //! - `real_models`: the scanned models of `../shared/models` and Debian's glTF test files;
 //!   ignored by default (run by `.ci/run` with `--include-ignored`).
 
@@ -34,3 +36,4 @@ mod meshes;
 mod output;
 mod real_models;
 mod robustness;
+mod skipping;

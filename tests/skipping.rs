@@ -1,0 +1,178 @@
+//! What a job does not do because its scene does not need it: no mesh read or triangle
+//! tree without meshes, no sphere tree without spheres, no closest-hit search or normals
+//! for `hit`, a mesh shared by a batch read and built once. (glTF images never being
+//! decoded is `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
+
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
+
+use glam::DVec3;
+use raybatch::job::{Batch, JobOptions};
+use raybatch::mesh::MeshCache;
+use raybatch::scene::{Hit, SceneCounts, Tracer};
+use raybatch::{Manifest, Ray, Scene, SceneGeometry};
+
+use crate::util::Dir;
+
+const TETRAHEDRON: &str =
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+
+fn scene_of(dir: &Dir, json: &str) -> (Manifest, Scene) {
+    let path = dir.write("scene.json", json);
+    let manifest = Manifest::load(&path).unwrap();
+    let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
+    let scene = Scene::build(&geometry);
+    (manifest, scene)
+}
+
+#[test]
+fn a_scene_without_meshes_builds_no_triangle_tree_and_one_without_spheres_no_sphere_tree() {
+    let dir = Dir::new();
+    dir.write("tetra.obj", TETRAHEDRON);
+    let (_, spheres_only) = scene_of(
+        &dir,
+        r#"{"image": {"width": 4, "height": 4},
+            "spheres": [{"center": [0, 0, 5], "radius": 1}, {"center": [2, 0, 5], "radius": 1}]}"#,
+    );
+    assert!(spheres_only.triangle_bvh().is_empty());
+    assert_eq!(spheres_only.triangle_tree().memory_bytes(), 0);
+    assert!(!spheres_only.sphere_bvh().is_empty());
+
+    let (_, mesh_only) = scene_of(
+        &dir,
+        r#"{"image": {"width": 4, "height": 4}, "meshes": [{"file": "tetra.obj"}]}"#,
+    );
+    assert!(mesh_only.sphere_bvh().is_empty());
+    let counts = mesh_only.counts();
+    assert_eq!((counts.triangles, counts.spheres), (4, 0));
+    // Everything the scene holds is the triangles' tree.
+    assert_eq!(counts.accel_bytes, mesh_only.triangle_tree().memory_bytes());
+}
+
+/// A tracer that counts what the render loop asks of the scene it wraps.
+struct Counting<'a> {
+    scene: &'a Scene,
+    closest: AtomicUsize,
+    any: AtomicUsize,
+    normals: AtomicUsize,
+}
+
+impl Tracer for Counting<'_> {
+    fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        self.closest.fetch_add(1, Relaxed);
+        self.scene.closest_hit(ray)
+    }
+    fn any_hit(&self, ray: &Ray) -> bool {
+        self.any.fetch_add(1, Relaxed);
+        self.scene.any_hit(ray)
+    }
+    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        self.closest.fetch_add(rays.len(), Relaxed);
+        self.scene.closest_hits(rays, out)
+    }
+    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        self.any.fetch_add(rays.len(), Relaxed);
+        self.scene.any_hits(rays, out)
+    }
+    fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
+        self.normals.fetch_add(1, Relaxed);
+        Tracer::normal(self.scene, ray, hit)
+    }
+    fn triangle_id(&self, slot: u32) -> u32 {
+        self.scene.triangle_id(slot)
+    }
+    fn counts(&self) -> SceneCounts {
+        self.scene.counts()
+    }
+}
+
+#[test]
+fn hit_asks_only_whether_anything_is_hit_and_only_normal_computes_normals() {
+    let dir = Dir::new();
+    dir.write("tetra.obj", TETRAHEDRON);
+    let base = r#""image": {"width": 16, "height": 12}, "sampler": {"type": "stratified", "spp": 2},
+        "spheres": [{"center": [0, 0, 5], "radius": 1}],
+        "meshes": [{"file": "tetra.obj", "transform": {"translate": [1, 0, 4]}}]"#;
+    let rays = 16 * 12 * 2;
+    for (integrator, closest, any, normals) in [
+        ("hit", 0, rays, false),
+        ("depth", rays, 0, false),
+        ("normal", rays, 0, true),
+    ] {
+        let (manifest, scene) = scene_of(
+            &dir,
+            &format!(r#"{{{base}, "integrator": {{"type": "{integrator}"}}}}"#),
+        );
+        let counting = Counting {
+            scene: &scene,
+            closest: AtomicUsize::new(0),
+            any: AtomicUsize::new(0),
+            normals: AtomicUsize::new(0),
+        };
+        raybatch::render::render(&counting, &manifest, &|_| {}).unwrap();
+        assert_eq!(counting.closest.into_inner(), closest, "{integrator}");
+        assert_eq!(counting.any.into_inner(), any, "{integrator}");
+        assert_eq!(counting.normals.into_inner() > 0, normals, "{integrator}");
+    }
+}
+
+fn manifest(mesh: &str, translate: f64, camera_x: f64, output: &str) -> String {
+    format!(
+        r#"{{"image": {{"width": 24, "height": 16}}, "integrator": {{"type": "depth"}},
+            "camera": {{"origin": [{camera_x}, 0.3, -3]}},
+            "meshes": [{{"file": "{mesh}", "transform": {{"translate": [{translate}, 0, 2]}}}}],
+            "output": "{output}"}}"#
+    )
+}
+
+fn run(batch: &mut Batch, path: &Path) -> bool {
+    let report = batch.run(path, &|_| {});
+    assert!(report.ok(), "{:?}", report.error);
+    report.triangle_tree_reused
+}
+
+#[test]
+fn a_mesh_shared_by_a_batch_is_read_once_and_its_tree_built_once_while_placed_alike() {
+    let dir = Dir::new();
+    dir.write("tetra.obj", TETRAHEDRON);
+    let jobs = [
+        // (name, translate, camera x, reuses the previous job's tree)
+        ("a", 0.0, 0.0, false),
+        ("b", 0.0, 0.5, true), // same placement, another camera
+        ("c", 0.0, -0.5, true),
+        ("d", 0.25, 0.0, false), // moved: other triangles
+        ("e", 0.0, 0.0, false),  // back again, but only the last tree is kept
+    ];
+    let mut batch = Batch::new(JobOptions::default());
+    for (name, translate, camera_x, reused) in jobs {
+        let path = dir.write(
+            &format!("{name}.json"),
+            manifest("tetra.obj", translate, camera_x, &format!("{name}.pfm")),
+        );
+        assert_eq!(run(&mut batch, &path), reused, "job {name}");
+    }
+    assert_eq!(batch.meshes().len(), 1);
+    assert_eq!(batch.triangle_tree_builds(), 3);
+
+    // A job that reused a tree renders what it renders alone.
+    let alone = Dir::new();
+    alone.write("tetra.obj", TETRAHEDRON);
+    let path = alone.write("b.json", manifest("tetra.obj", 0.0, 0.5, "b.pfm"));
+    assert!(!run(&mut Batch::new(JobOptions::default()), &path));
+    assert_eq!(alone.read("b.pfm"), dir.read("b.pfm"));
+
+    // A meshless job in between keeps the tree; a changed file is read and built again.
+    let mut batch = Batch::new(JobOptions::default());
+    let a = dir.join("a.json");
+    assert!(!run(&mut batch, &a));
+    let spheres = dir.write(
+        "spheres.json",
+        r#"{"image": {"width": 4, "height": 4}, "spheres": [{"center": [0, 0, 5], "radius": 1}],
+            "output": "spheres.ppm"}"#,
+    );
+    assert!(!run(&mut batch, &spheres));
+    assert!(run(&mut batch, &dir.join("b.json")));
+    dir.write("tetra.obj", format!("{TETRAHEDRON}# a longer file\n"));
+    assert!(!run(&mut batch, &dir.join("c.json")));
+    assert_eq!(batch.triangle_tree_builds(), 2);
+}
