@@ -22,6 +22,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod accuracy;
 pub mod bench;
 pub mod bvh;
 pub mod camera;
@@ -37,6 +38,7 @@ pub mod job;
 pub mod manifest;
 pub mod mesh;
 pub mod obj;
+pub mod offset;
 #[cfg(target_arch = "x86_64")]
 pub mod packet;
 pub mod plane;
@@ -48,6 +50,7 @@ pub mod scene;
 #[cfg(target_arch = "x86_64")]
 pub mod simd;
 pub mod sphere;
+pub mod stress;
 pub mod transform;
 pub mod triangle;
 #[cfg(feature = "embree")]

@@ -16,6 +16,7 @@ use crate::bvh::{self, BoxRay, BuildPreset, Bvh};
 use crate::error::{Error, MeshError};
 use crate::manifest::{MAX_MAGNITUDE, Manifest};
 use crate::mesh::{MeshCache, MeshFile};
+use crate::offset::{self, SurfacePoint};
 use crate::plane::Plane;
 use crate::ray::Ray;
 use crate::sphere::Sphere;
@@ -526,6 +527,46 @@ impl Scene {
         }
     }
 
+    /// Where `ray` hit, as a point to start secondary rays from (see [`crate::offset`]):
+    /// a sphere's point projected back onto the sphere, a plane's onto the plane, a
+    /// triangle's from its barycentric weights, each with its error bound.
+    pub fn surface_point(&self, ray: &Ray, hit: &Hit) -> SurfacePoint {
+        let raw = ray.at(hit.t);
+        match hit.primitive {
+            Primitive::Plane(i) => {
+                let Plane { point, normal } = self.planes[i as usize];
+                let p = raw - normal * (raw - point).dot(normal);
+                let error = (raw.abs() + point.abs()) * offset::gamma(8, offset::U64);
+                SurfacePoint::new(p, error, normal)
+            }
+            Primitive::Sphere(id) => {
+                let Sphere { center, radius } = self.spheres_by_id[id as usize];
+                let normal = (raw - center).normalize();
+                let on = normal * radius;
+                let error = (center.abs() + on.abs() + DVec3::splat(radius))
+                    * offset::gamma(6, offset::U64);
+                SurfacePoint::new(center + on, error, normal)
+            }
+            Primitive::Triangle { slot, b1, b2 } => {
+                let (block, lane) = self.slot(slot);
+                let [v0, v1, v2] =
+                    [0, 1, 2].map(|k| DVec3::from_array(block.vertex(lane, k).map(f64::from)));
+                let (b1, b2) = (f64::from(b1), f64::from(b2));
+                let b0 = 1.0 - b1 - b2;
+                let (w0, w1, w2) = (v0 * b0, v1 * b1, v2 * b2);
+                // pbrt's bound for the float32 barycentric sum (the weights come from the
+                // float32 test), which also covers this float64 one.
+                let error = (w0.abs() + w1.abs() + w2.abs()) * offset::gamma(7, offset::U32);
+                let normal = triangle::geometric_normal(
+                    block.vertex(lane, 0),
+                    block.vertex(lane, 1),
+                    block.vertex(lane, 2),
+                );
+                SurfacePoint::on_triangle(w0 + w1 + w2, error, normal)
+            }
+        }
+    }
+
     fn slot(&self, slot: u32) -> (&TriangleBlock, usize) {
         let block = &self.triangles.blocks[slot as usize / BLOCK];
         (block, slot as usize % BLOCK)
@@ -667,10 +708,15 @@ fn build_triangles(
     triangles: &[[[f32; 3]; 3]],
     preset: BuildPreset,
 ) -> (Vec<TriangleBlock>, Bvh<f32>) {
-    let boxes: Vec<Aabb> = triangles
+    // Triangles without area are never hit, so they are left out of the tree.
+    let kept: Vec<u32> = (0..triangles.len() as u32)
+        .into_par_iter()
+        .filter(|&i| !triangle::is_degenerate(&triangles[i as usize]))
+        .collect();
+    let boxes: Vec<Aabb> = kept
         .par_iter()
-        .map(|t| {
-            let [a, b, c] = t.map(Vec3A::from);
+        .map(|&i| {
+            let [a, b, c] = triangles[i as usize].map(Vec3A::from);
             Aabb::new(a.min(b).min(c), a.max(b).max(c))
         })
         .collect();
@@ -680,7 +726,7 @@ fn build_triangles(
     let mut order: Vec<u32> = Vec::with_capacity(triangles.len());
     let bvh = Bvh::build(&boxes, preset.params(TRIANGLES_PER_LEAF), |prims| {
         let start = order.len();
-        order.extend_from_slice(prims);
+        order.extend(prims.iter().map(|&p| kept[p as usize]));
         let (first, last) = (start / BLOCK, (order.len() - 1) / BLOCK);
         (first as u32, (last - first + 1) as u32)
     });

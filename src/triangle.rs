@@ -222,6 +222,16 @@ impl Nearest {
     }
 }
 
+/// Whether a stored triangle has zero area: its edge vectors' cross product is exactly
+/// zero in float64, where the differences of float32 coordinates and their products are
+/// exact for any triangle whose coordinates are within 2²⁴ of each other in scale. A ray
+/// can still meet such a triangle in float32 (the shear rounds its points off their
+/// line), so the tree leaves these out: a triangle with no area is never hit.
+pub fn is_degenerate(t: &[[f32; 3]; 3]) -> bool {
+    let [a, b, c] = t.map(|v| glam::DVec3::from_array(v.map(f64::from)));
+    (b - a).cross(c - a) == glam::DVec3::ZERO
+}
+
 /// The unit geometric normal `normalize(cross(v1 − v0, v2 − v0))` in float64, from the
 /// stored float32 vertices.
 pub fn geometric_normal(v0: [f32; 3], v1: [f32; 3], v2: [f32; 3]) -> glam::DVec3 {

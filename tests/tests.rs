@@ -17,6 +17,8 @@
 //!   files, batches going on, exit statuses.
 //! - `robustness`: watertightness, traversal against brute force, deep trees, tiny
 //!   direction components, tiny far spheres.
+//! - `stress`: the stress suite (scale sweeps, leaks, offsets, needles, …) against its
+//!   references, and proof that it catches rays started without an offset.
 //! - `skipping`: work a scene does not need is not done (trees, closest-hit searches,
 //!   normals, rereading and rebuilding a batch's shared mesh).
 //! - `real_models`: the scanned models of `../shared/models` and Debian's glTF test files;
@@ -37,3 +39,4 @@ mod output;
 mod real_models;
 mod robustness;
 mod skipping;
+mod stress;

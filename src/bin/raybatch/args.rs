@@ -32,6 +32,26 @@ pub enum Command {
     /// Measure trace throughput (closest and any hit, per thread count), build and load
     /// times, memory and whole jobs; with `--embree`, the same rays through Embree.
     Bench(BenchArgs),
+    /// Run the stress suite: scale and translation sweeps, tiny far spheres, rays starting
+    /// on surfaces, grazing rays, leaks through shared edges, needles, degenerate
+    /// triangles, tiny direction components, interval ends, non-finite input; each ray
+    /// checked against an independent reference. Prints wrong-ray counts per case and
+    /// exits 1 if any ray is wrong. With `--accuracy DIR`, also measures run time against
+    /// error for each speed/accuracy choice and writes DIR/accuracy.md with SVG plots.
+    Stress(StressArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct StressArgs {
+    /// Fewer rays per case (a smoke test).
+    #[arg(long)]
+    pub quick: bool,
+    /// Print JSON instead of a Markdown table.
+    #[arg(long)]
+    pub json: bool,
+    /// Also write DIR/accuracy.md and its plots (e.g. `--accuracy docs`).
+    #[arg(long, value_name = "DIR")]
+    pub accuracy: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]

@@ -11,7 +11,7 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use clap::Parser;
 
-use args::{BackendArg, BenchArgs, Cli, Command, CompareArgs, RenderArgs, VerifyArgs};
+use args::{BackendArg, BenchArgs, Cli, Command, CompareArgs, RenderArgs, StressArgs, VerifyArgs};
 use raybatch::compare::{Limits, compare_images};
 use raybatch::job::{Backend, Batch, JobOptions, manifests_in};
 
@@ -25,6 +25,7 @@ fn main() -> ExitCode {
         Command::Compare(args) => compare(args),
         Command::Verify(args) => verify(args),
         Command::Bench(args) => bench(args),
+        Command::Stress(args) => stress(args),
     };
     match result {
         Ok(code) => code,
@@ -255,6 +256,32 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
         print!("{}", report.to_markdown());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `raybatch stress`: the report on stdout; exit 1 when any ray is wrong.
+fn stress(args: StressArgs) -> anyhow::Result<ExitCode> {
+    use raybatch::stress::{self, StressOptions};
+    let options = if args.quick {
+        StressOptions::QUICK
+    } else {
+        StressOptions::FULL
+    };
+    let report = stress::run(options);
+    if args.json {
+        println!("{}", report.to_json());
+    } else {
+        print!("{}", report.to_markdown());
+    }
+    if let Some(dir) = &args.accuracy {
+        let written = raybatch::accuracy::write(dir, args.quick)
+            .with_context(|| format!("cannot write the accuracy report into {}", dir.display()))?;
+        eprintln!("raybatch: wrote {}", written.display());
+    }
+    Ok(if report.wrong() == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }
 
 /// The manifests named by the command line (folders expanded, duplicates dropped), and how
