@@ -593,20 +593,25 @@ impl BenchReport {
         let _ = writeln!(out);
         let _ = writeln!(
             out,
-            "| scene | build s | Embree build s | load s | load MB/s | peak bytes/triangle |"
+            "| scene | build s | Embree build s | build / Embree | load s | load MB/s | scene bytes/triangle | peak RSS growth bytes/triangle |"
         );
-        let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
+        let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for s in &self.scenes {
             let _ = writeln!(
                 out,
-                "| {} | {:.3} | {} | {} | {} | {} |",
+                "| {} | {:.3} | {} | {} | {} | {} | {:.0} | {} |",
                 s.name,
                 s.raybatch.build_s,
                 s.embree
                     .as_ref()
                     .map_or("-".to_string(), |e| format!("{:.3}", e.build_s)),
+                s.embree.as_ref().map_or("-".to_string(), |e| format!(
+                    "{:.2}x",
+                    s.raybatch.build_s / e.build_s
+                )),
                 s.load.map_or("-".to_string(), |l| format!("{:.3}", l.0)),
                 s.load.map_or("-".to_string(), |l| format!("{:.0}", l.1)),
+                s.scene_bytes_per_triangle,
                 s.peak_bytes_per_triangle
                     .map_or("-".to_string(), |b| format!("{b:.0}")),
             );

@@ -237,7 +237,7 @@ fn ray(origin: DVec3, direction: DVec3) -> Ray {
 }
 
 /// The ray from `origin` through `target`, and the distance to it.
-fn aimed(origin: DVec3, target: DVec3) -> (Ray, f64) {
+pub(crate) fn aimed(origin: DVec3, target: DVec3) -> (Ray, f64) {
     let to = target - origin;
     let distance = to.length();
     (ray(origin, to / distance), distance)
@@ -248,7 +248,7 @@ fn f32_point(p: DVec3) -> DVec3 {
 }
 
 /// A closed icosphere of `radius` around `center`, as stored (float32) triangles.
-fn icosphere(subdivisions: u32, radius: f64, center: DVec3) -> Vec<[[f32; 3]; 3]> {
+pub(crate) fn icosphere(subdivisions: u32, radius: f64, center: DVec3) -> Vec<[[f32; 3]; 3]> {
     let g = procedural::icosphere(subdivisions);
     let placed: Vec<[f32; 3]> = g
         .positions
@@ -267,7 +267,7 @@ fn icosphere(subdivisions: u32, radius: f64, center: DVec3) -> Vec<[[f32; 3]; 3]
 
 /// Every vertex and edge midpoint of `triangles`, exactly (float32 sums are exact in
 /// float64).
-fn shared_targets(triangles: &[[[f32; 3]; 3]]) -> Vec<DVec3> {
+pub(crate) fn shared_targets(triangles: &[[[f32; 3]; 3]]) -> Vec<DVec3> {
     let mut targets = Vec::new();
     for t in triangles {
         let [a, b, c] = t.map(|v| DVec3::from_array(v.map(f64::from)));
@@ -310,7 +310,7 @@ fn closed_mesh_from_inside(scale: f64, shift: f64, rays: usize) -> Case {
 }
 
 /// A point on the sphere's cap facing `origin`, seen from `origin` without obstruction.
-fn visible_point(sphere: &Sphere, origin: DVec3, numbers: &mut Numbers) -> DVec3 {
+pub(crate) fn visible_point(sphere: &Sphere, origin: DVec3, numbers: &mut Numbers) -> DVec3 {
     let toward = (origin - sphere.center).normalize();
     let cosine_horizon = sphere.radius / (origin - sphere.center).length();
     loop {
@@ -324,7 +324,7 @@ fn visible_point(sphere: &Sphere, origin: DVec3, numbers: &mut Numbers) -> DVec3
 /// The reference for a sphere: the distance to where the line enters it, from the
 /// perpendicular foot `(f × d)` form rather than the code's; `None` inside a thin band of
 /// relative width 10⁻⁹ around tangency, where the answer is not decided by the reference.
-fn sphere_reference(sphere: &Sphere, r: &Ray) -> Option<Option<f64>> {
+pub(crate) fn sphere_reference(sphere: &Sphere, r: &Ray) -> Option<Option<f64>> {
     let f = sphere.center - r.origin;
     let along = f.dot(r.direction);
     let off = f.cross(r.direction).length();
@@ -682,7 +682,7 @@ fn grazing_spheres(rays: usize) -> Case {
 
 /// The float64 reference for one stored triangle: the distance and barycentric weights
 /// where the ray's line meets its plane (Cramer's rule on the exact float32 vertices).
-fn triangle_reference(t: &[[f32; 3]; 3], r: &Ray) -> Option<(f64, [f64; 3])> {
+pub(crate) fn triangle_reference(t: &[[f32; 3]; 3], r: &Ray) -> Option<(f64, [f64; 3])> {
     let [a, b, c] = t.map(|v| DVec3::from_array(v.map(f64::from)));
     let (e1, e2) = (b - a, c - a);
     let p = r.direction.cross(e2);
