@@ -108,16 +108,15 @@ fn spheres(dir: &Path, page: &mut String, rays: usize) -> io::Result<()> {
             radius: 1.0,
         };
         let mut cases = Vec::new();
+        let mut i = 0;
         while cases.len() < rays {
-            let target = if cases.len() % 2 == 0 {
-                stress::visible_point(&sphere, DVec3::ZERO, &mut numbers)
-            } else {
-                sphere.center + numbers.direction() * 1.2
-            };
-            let (r, _) = stress::aimed(DVec3::ZERO, target);
-            if let Some(expected) = stress::sphere_reference(&sphere, &r) {
-                cases.push((r, expected));
-            }
+            cases.extend(stress::sphere_case_ray(
+                &sphere,
+                DVec3::ZERO,
+                i,
+                &mut numbers,
+            ));
+            i += 1;
         }
         for (m, (_, test)) in SPHERE_METHODS.iter().enumerate() {
             let wrong = cases

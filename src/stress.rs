@@ -310,7 +310,7 @@ fn closed_mesh_from_inside(scale: f64, shift: f64, rays: usize) -> Case {
 }
 
 /// A point on the sphere's cap facing `origin`, seen from `origin` without obstruction.
-pub(crate) fn visible_point(sphere: &Sphere, origin: DVec3, numbers: &mut Numbers) -> DVec3 {
+fn visible_point(sphere: &Sphere, origin: DVec3, numbers: &mut Numbers) -> DVec3 {
     let toward = (origin - sphere.center).normalize();
     let cosine_horizon = sphere.radius / (origin - sphere.center).length();
     loop {
@@ -324,7 +324,7 @@ pub(crate) fn visible_point(sphere: &Sphere, origin: DVec3, numbers: &mut Number
 /// The reference for a sphere: the distance to where the line enters it, from the
 /// perpendicular foot `(f × d)` form rather than the code's; `None` inside a thin band of
 /// relative width 10⁻⁹ around tangency, where the answer is not decided by the reference.
-pub(crate) fn sphere_reference(sphere: &Sphere, r: &Ray) -> Option<Option<f64>> {
+fn sphere_reference(sphere: &Sphere, r: &Ray) -> Option<Option<f64>> {
     let f = sphere.center - r.origin;
     let along = f.dot(r.direction);
     let off = f.cross(r.direction).length();
@@ -364,6 +364,26 @@ fn leaves_far_side(sphere: &Sphere, r: &Ray, got: Option<f64>) -> bool {
     })
 }
 
+/// Ray `i` of a sphere case from `origin` (outside), with its reference: even rays aimed
+/// at a point of the sphere's visible side (the distance to it is known), odd ones at a
+/// point just beside the sphere (some lines cross it, some pass it). `None` for a line too
+/// near tangency for the reference to decide.
+pub(crate) fn sphere_case_ray(
+    sphere: &Sphere,
+    origin: DVec3,
+    i: usize,
+    numbers: &mut Numbers,
+) -> Option<(Ray, Option<f64>)> {
+    if i.is_multiple_of(2) {
+        let (r, distance) = aimed(origin, visible_point(sphere, origin, numbers));
+        Some((r, Some(distance)))
+    } else {
+        let target = sphere.center + numbers.direction() * (1.2 * sphere.radius);
+        let (r, _) = aimed(origin, target);
+        sphere_reference(sphere, &r).map(|expected| (r, expected))
+    }
+}
+
 /// Rays from outside to points on a sphere's near side, and rays past it.
 fn sphere_from_outside(scale: f64, shift: f64, rays: usize) -> Case {
     let sphere = Sphere {
@@ -375,24 +395,12 @@ fn sphere_from_outside(scale: f64, shift: f64, rays: usize) -> Case {
     let mut tally = Tally::default();
     for i in 0..rays {
         let origin = sphere.center + numbers.direction() * (3.0 * scale);
-        if i % 2 == 0 {
-            let (r, distance) = aimed(origin, visible_point(&sphere, origin, &mut numbers));
+        if let Some((r, expected)) = sphere_case_ray(&sphere, origin, i, &mut numbers) {
             tally.check(
                 scene.closest_hit(&r).map(|h| h.t),
-                Some(distance),
+                expected,
                 ANALYTIC_TOLERANCE,
             );
-        } else {
-            // Toward a point beside the sphere: some lines cross it, some pass it.
-            let target = sphere.center + numbers.direction() * (1.2 * scale);
-            let (r, _) = aimed(origin, target);
-            if let Some(expected) = sphere_reference(&sphere, &r) {
-                tally.check(
-                    scene.closest_hit(&r).map(|h| h.t),
-                    expected,
-                    ANALYTIC_TOLERANCE,
-                );
-            }
         }
     }
     tally.case(
@@ -436,24 +444,12 @@ fn tiny_far_sphere(radius: f64, distance: f64, rays: usize) -> Case {
     let scene = scene(vec![], vec![sphere], vec![]);
     let mut tally = Tally::default();
     for i in 0..rays {
-        let origin = DVec3::ZERO;
-        if i % 2 == 0 {
-            let (r, d) = aimed(origin, visible_point(&sphere, origin, &mut numbers));
+        if let Some((r, expected)) = sphere_case_ray(&sphere, DVec3::ZERO, i, &mut numbers) {
             tally.check(
                 scene.closest_hit(&r).map(|h| h.t),
-                Some(d),
+                expected,
                 ANALYTIC_TOLERANCE,
             );
-        } else {
-            let target = sphere.center + numbers.direction() * (1.2 * radius);
-            let (r, _) = aimed(origin, target);
-            if let Some(expected) = sphere_reference(&sphere, &r) {
-                tally.check(
-                    scene.closest_hit(&r).map(|h| h.t),
-                    expected,
-                    ANALYTIC_TOLERANCE,
-                );
-            }
         }
     }
     tally.case(
