@@ -117,4 +117,22 @@ mod tests {
             assert!(moved * side < need * 1.001, "{direction}: {moved}");
         }
     }
+
+    #[test]
+    fn a_ray_toward_a_point_stops_short_of_it() {
+        let p = SurfacePoint::new(DVec3::new(1.0, 0.0, 0.0), DVec3::splat(1e-9), DVec3::X);
+        let target = DVec3::new(4.0, 4.0, 0.0);
+        let r = p.spawn_toward(target);
+        assert!((r.direction.length() - 1.0).abs() < 1e-15);
+        assert!(
+            r.origin.x > 1.0,
+            "moved off the surface toward the target's side"
+        );
+        let reach = (target - r.origin).length();
+        assert!(
+            r.tmax < reach && r.tmax > reach * (1.0 - 1e-12),
+            "{} {reach}",
+            r.tmax
+        );
+    }
 }

@@ -15,7 +15,7 @@ use std::mem::MaybeUninit;
 
 use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
-use crate::simd::{STACK, block_test, distance, pack, tri_lanes};
+use crate::simd::{STACK, block_test, distance, pack, push_sorted, tri_lanes};
 use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
@@ -197,14 +197,7 @@ unsafe fn trace<const ANY: bool>(
                         sp += 1;
                         continue;
                     }
-                    let mut j = sp;
-                    // SAFETY: slots `base..sp` were written by this loop.
-                    while j > base && unsafe { stack[j - 1].assume_init() } < key {
-                        stack[j] = stack[j - 1];
-                        j -= 1;
-                    }
-                    stack[j] = MaybeUninit::new(key);
-                    sp += 1;
+                    push_sorted(&mut stack, base, &mut sp, key);
                 }
             }
         } else {

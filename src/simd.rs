@@ -329,15 +329,12 @@ pub unsafe fn closest(
             while m != 0 {
                 let i = m.trailing_zeros() as usize;
                 m &= m - 1;
-                let key = pack(entries[i], node.children[i]);
-                let mut j = sp;
-                // SAFETY: slots `base..sp` were written by this loop.
-                while j > base && unsafe { stack[j - 1].assume_init() } < key {
-                    stack[j] = stack[j - 1];
-                    j -= 1;
-                }
-                stack[j] = MaybeUninit::new(key);
-                sp += 1;
+                push_sorted(
+                    &mut stack,
+                    base,
+                    &mut sp,
+                    pack(entries[i], node.children[i]),
+                );
             }
             sp -= 1;
             // SAFETY: written above.
@@ -437,4 +434,18 @@ pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: TriangleRay) ->
         // SAFETY: every slot below `sp` was written above.
         current = unsafe { stack[sp].assume_init() };
     }
+}
+
+/// Pushes `key` onto `stack[..sp]`, keeping the entries pushed since `base` in descending
+/// order (so the nearest child is popped first). Slots `base..sp` must be initialized.
+#[inline(always)]
+pub(crate) fn push_sorted(stack: &mut [MaybeUninit<u64>], base: usize, sp: &mut usize, key: u64) {
+    let mut j = *sp;
+    // SAFETY: slots `base..sp` are initialized (the caller's contract).
+    while j > base && unsafe { stack[j - 1].assume_init() } < key {
+        stack[j] = stack[j - 1];
+        j -= 1;
+    }
+    stack[j] = MaybeUninit::new(key);
+    *sp += 1;
 }
