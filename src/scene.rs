@@ -299,11 +299,10 @@ impl Scene {
     #[inline]
     pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
         let mut best = self.closest_analytic(ray);
-        if !self.triangles.bvh.is_empty() {
-            let r = TriangleRay::new(ray, best.map_or(ray.tmax, |h| h.t));
-            if let Some((nearest, hit)) = self.nearest_triangle(&r) {
-                best = Some(Self::triangle_hit(nearest, hit));
-            }
+        if !self.triangles.bvh.is_empty()
+            && let Some((nearest, hit)) = self.nearest_triangle(ray, best.map_or(ray.tmax, |h| h.t))
+        {
+            best = Some(Self::triangle_hit(nearest, hit));
         }
         best
     }
@@ -372,11 +371,11 @@ impl Scene {
                 };
             #[cfg(not(target_arch = "x86_64"))]
             let traced = false;
-            for (k, r) in prepared.iter().enumerate() {
+            for (k, ray) in rays.iter().enumerate() {
                 let found = if traced {
                     triangles[k]
                 } else {
-                    self.nearest_triangle(r)
+                    self.nearest_triangle(ray, out[k].map_or(ray.tmax, |h| h.t))
                 };
                 if let Some((nearest, hit)) = found {
                     out[k] = Some(Self::triangle_hit(nearest, hit));
@@ -429,22 +428,24 @@ impl Scene {
                 }
             }
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
-                *out = *out || self.any_triangle(&TriangleRay::new(ray, ray.tmax));
+                *out = *out || self.any_triangle(ray);
             }
         }
     }
 
-    /// The nearest triangle hit of a rounded ray, through the AVX2 kernels when the scene
-    /// uses them: both paths give the same [`Nearest`] (see its tie rule).
+    /// The nearest triangle hit with `ray.tmin < t < tmax` of the ray rounded to float32,
+    /// through the AVX2 kernels when the scene uses them: both paths give the same
+    /// [`Nearest`] (see its tie rule).
     #[inline(always)]
-    fn nearest_triangle(&self, r: &TriangleRay) -> Option<(Nearest, TriangleHit)> {
+    fn nearest_triangle(&self, ray: &Ray, tmax: f64) -> Option<(Nearest, TriangleHit)> {
         #[cfg(target_arch = "x86_64")]
         if self.simd {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
             return unsafe {
-                crate::simd::closest(&self.triangles.bvh, &self.triangles.blocks, *r)
+                crate::simd::closest(&self.triangles.bvh, &self.triangles.blocks, ray, tmax)
             };
         }
+        let r = TriangleRay::new(ray, tmax);
         let (sheared, boxes) = (r.sheared(), r.boxes());
         let mut nearest = Nearest::before(r.tmax);
         let mut found = None;
@@ -470,9 +471,7 @@ impl Scene {
     /// Whether anything is hit with `ray.tmin < t < ray.tmax`; stops at the first hit found.
     #[inline]
     pub fn any_hit(&self, ray: &Ray) -> bool {
-        self.any_analytic(ray)
-            || (!self.triangles.bvh.is_empty()
-                && self.any_triangle(&TriangleRay::new(ray, ray.tmax)))
+        self.any_analytic(ray) || (!self.triangles.bvh.is_empty() && self.any_triangle(ray))
     }
 
     /// Whether a plane or a sphere is hit.
@@ -495,14 +494,15 @@ impl Scene {
         })
     }
 
-    /// Whether a triangle is hit by a rounded ray.
+    /// Whether a triangle has `ray.tmin < t < ray.tmax` for the ray rounded to float32.
     #[inline(always)]
-    fn any_triangle(&self, r: &TriangleRay) -> bool {
+    fn any_triangle(&self, ray: &Ray) -> bool {
         #[cfg(target_arch = "x86_64")]
         if self.simd {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            return unsafe { crate::simd::any(&self.triangles.bvh, &self.triangles.blocks, *r) };
+            return unsafe { crate::simd::any(&self.triangles.bvh, &self.triangles.blocks, ray) };
         }
+        let r = TriangleRay::new(ray, ray.tmax);
         let (sheared, boxes) = (r.sheared(), r.boxes());
         self.triangles.bvh.any(&boxes, r.tmax, |first, count| {
             (first..first + count).any(|b| {
@@ -654,7 +654,7 @@ impl TriangleRay {
     };
 
     #[inline(always)]
-    fn new(ray: &Ray, tmax: f64) -> TriangleRay {
+    pub(crate) fn new(ray: &Ray, tmax: f64) -> TriangleRay {
         TriangleRay {
             origin: ray.origin.as_vec3().to_array(),
             direction: ray.direction.as_vec3().to_array(),

@@ -11,7 +11,8 @@
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{BoxRay, Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::bvh::{Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::ray::Ray;
 use crate::scene::TriangleRay;
 use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit, edge_functions_f64};
 
@@ -71,21 +72,76 @@ pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes {
 // cannot be combined): they are called only from the AVX2 traversals, into which they and
 // their intrinsics inline.
 
+/// A ray's constants, computed in registers: the same IEEE divisions and products as
+/// [`ShearedRay::new`](crate::triangle::ShearedRay::new) and [`BoxRay::new`](crate::bvh::BoxRay::new)
+/// (so bit-identical), but as one 8-lane division and permutes instead of six dependent
+/// scalar divisions and indexed reloads: a ray's setup is most of the cost of a ray that
+/// misses the scene.
+///
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn lanes(sheared: &ShearedRay, boxes: &BoxRay<f32>) -> Lanes {
+unsafe fn lanes(ray: &TriangleRay) -> Lanes {
     let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
+    let [dx, dy, dz] = ray.direction;
+    let (ax, ay, az) = (dx.abs(), dy.abs(), dz.abs());
+    // As `ShearedRay::new` chooses them.
+    let kz = if ax > ay {
+        if ax > az { 0 } else { 2 }
+    } else if ay > az {
+        1
+    } else {
+        2
+    };
+    let kx = (kz + 1) % 3;
+    let ky = (kx + 1) % 3;
+    let negative = [dx, dy, dz].map(|d| usize::from(d.is_sign_negative()));
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
+        let one = _mm_set1_ps(1.0);
+        let d = _mm_setr_ps(dx, dy, dz, 1.0);
+        let dk = _mm_permutevar_ps(d, _mm_setr_epi32(kx as i32, ky as i32, kz as i32, 3));
+        let d_kz = _mm_permute_ps::<0b10_10_10_10>(dk);
+        // Lanes 0–3: d[kx]/d[kz], d[ky]/d[kz], 1/d[kz], 1; lanes 4–7: 1/d, 1.
+        let numerator = _mm256_set_m128(one, _mm_blend_ps::<0b1100>(dk, one));
+        let denominator = _mm256_set_m128(d, _mm_blend_ps::<0b1000>(d_kz, one));
+        let quotient = _mm256_div_ps(numerator, denominator);
+        let inv = _mm256_extractf128_ps::<1>(quotient);
+        let inv_far = _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE));
+        let shear = _mm256_castps256_ps128(quotient);
+        // Macros, not closures: a closure would not inherit the caller's AVX2.
+        macro_rules! splat4 {
+            ($v:expr, $lane:literal) => {
+                _mm_permute_ps::<{ $lane * 0b01_01_01_01 }>($v)
+            };
+        }
+        macro_rules! splat8 {
+            ($v:expr, $lane:literal) => {
+                _mm256_set_m128(splat4!($v, $lane), splat4!($v, $lane))
+            };
+        }
+        let [ox, oy, oz] = ray.origin;
         Lanes {
-            origin: boxes.origin.map(|o| _mm256_set1_ps(o)),
-            inv_dir: boxes.inv_dir.map(|d| _mm256_set1_ps(d)),
-            inv_dir_far: boxes.inv_dir_far.map(|d| _mm256_set1_ps(d)),
-            near: [0, 1, 2].map(|a| offset(boxes.near[a], a)),
-            far: [0, 1, 2].map(|a| offset(1 - boxes.near[a], a)),
-            tmin8: _mm256_set1_ps(boxes.tmin),
-            tri: tri_lanes(sheared, boxes.tmin),
+            origin: [_mm256_set1_ps(ox), _mm256_set1_ps(oy), _mm256_set1_ps(oz)],
+            inv_dir: [splat8!(inv, 0), splat8!(inv, 1), splat8!(inv, 2)],
+            inv_dir_far: [
+                splat8!(inv_far, 0),
+                splat8!(inv_far, 1),
+                splat8!(inv_far, 2),
+            ],
+            near: [0, 1, 2].map(|a| offset(negative[a], a)),
+            far: [0, 1, 2].map(|a| offset(1 - negative[a], a)),
+            tmin8: _mm256_set1_ps(ray.tmin),
+            tri: TriLanes {
+                kx,
+                ky,
+                kz,
+                o4: [_mm_set1_ps(ox), _mm_set1_ps(oy), _mm_set1_ps(oz)],
+                sx: splat4!(shear, 0),
+                sy: splat4!(shear, 1),
+                sz: splat4!(shear, 2),
+                tmin4: _mm_set1_ps(ray.tmin),
+            },
         }
     }
 }
@@ -270,7 +326,8 @@ pub(crate) fn distance(entry: u64) -> f32 {
 pub unsafe fn closest(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
-    ray: TriangleRay,
+    ray: &Ray,
+    tmax: f64,
 ) -> Option<(Nearest, TriangleHit)> {
     assert!(
         bvh.stack_bound() <= STACK,
@@ -280,8 +337,11 @@ pub unsafe fn closest(
     if nodes.is_empty() {
         return None;
     }
+    // Rounded here rather than by the caller: passed in, the float32 ray would be stored
+    // field by field and reloaded whole, stalling every ray on store forwarding.
+    let ray = TriangleRay::new(ray, tmax);
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
-    let r = unsafe { lanes(&ray.sheared(), &ray.boxes()) };
+    let r = unsafe { lanes(&ray) };
     let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
     let mut sp = 0usize;
     let mut nearest = Nearest::before(ray.tmax);
@@ -387,7 +447,7 @@ pub unsafe fn closest(
 /// # Safety
 /// As for [`closest`].
 #[target_feature(enable = "avx2")]
-pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: TriangleRay) -> bool {
+pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: &Ray) -> bool {
     assert!(
         bvh.stack_bound() <= STACK,
         "the scalar path handles deeper trees"
@@ -396,8 +456,9 @@ pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: TriangleRay) ->
     if nodes.is_empty() {
         return false;
     }
+    let ray = TriangleRay::new(ray, ray.tmax);
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
-    let r = unsafe { lanes(&ray.sheared(), &ray.boxes()) };
+    let r = unsafe { lanes(&ray) };
     let tmax = ray.tmax;
     let t_far = _mm256_set1_ps(tmax);
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];

@@ -479,6 +479,35 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
     for target in shared_targets(&ico.triangles).into_iter().step_by(7) {
         rays.push(ray(DVec3::new(0.01, -0.02, 0.03), target));
     }
+    // Directions whose setup takes the special branches: zero and negative-zero
+    // components (infinite inverses), and ties for the largest component (which axis the
+    // shear divides by).
+    let special = [
+        [0.0, 0.0, 1.0],
+        [-0.0, 0.0, -1.0],
+        [0.0, -1.0, -0.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [-1.0, 1.0, 1.0],
+        [1.0, -1.0, -1.0],
+        [0.0, 1.0, -1.0],
+        [1e-30, -1.0, 1e-30],
+    ];
+    for d in special {
+        for k in 0..16 {
+            let origin = DVec3::new(
+                0.05 * k as f64 - 0.4,
+                0.37 - 0.045 * k as f64,
+                0.013 * k as f64,
+            );
+            rays.push(Ray {
+                origin: origin - DVec3::from_array(d) * 2.0,
+                direction: DVec3::from_array(d),
+                tmin: 0.0,
+                tmax: f64::INFINITY,
+            });
+        }
+    }
     for triangles in [soup_triangles, grid.triangles, ico.triangles] {
         for preset in [BuildPreset::Fast, BuildPreset::Medium] {
             let mut scene = Scene::build_with(
