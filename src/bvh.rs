@@ -439,14 +439,27 @@ impl<T: Scalar> Bvh<T> {
     /// shrinks `tmax` to the nearest hit found so far.
     #[inline]
     pub fn closest(&self, ray: &BoxRay<T>, tmax: &mut T, leaf: impl FnMut(u32, u32, &mut T)) {
+        self.closest_by(|node, tmax| intersect_node(node, ray, tmax), tmax, leaf);
+    }
+
+    /// [`Bvh::closest`] with another node test, which must return what
+    /// [`intersect_node`] returns for the ray (the AVX2 kernels pass their own).
+    #[inline(always)]
+    pub fn closest_by(
+        &self,
+        node_test: impl Fn(&Node<T>, T) -> (u32, [T; WIDTH]),
+        tmax: &mut T,
+        leaf: impl FnMut(u32, u32, &mut T),
+    ) {
         if self.nodes.is_empty() {
             return;
         }
         if self.stack_bound <= INLINE_STACK {
-            self.closest_with(&mut InlineStack::<T, INLINE_STACK>::new(), ray, tmax, leaf);
+            let mut stack = InlineStack::<T, INLINE_STACK>::new();
+            self.closest_with(&mut stack, node_test, tmax, leaf);
         } else {
             let mut stack = Vec::with_capacity(self.stack_bound);
-            self.closest_with(&mut stack, ray, tmax, leaf);
+            self.closest_with(&mut stack, node_test, tmax, leaf);
         }
     }
 
@@ -454,7 +467,7 @@ impl<T: Scalar> Bvh<T> {
     fn closest_with(
         &self,
         stack: &mut impl Stack<T>,
-        ray: &BoxRay<T>,
+        node_test: impl Fn(&Node<T>, T) -> (u32, [T; WIDTH]),
         tmax: &mut T,
         mut leaf: impl FnMut(u32, u32, &mut T),
     ) {
@@ -465,7 +478,7 @@ impl<T: Scalar> Bvh<T> {
                 leaf(first, count, tmax);
             } else {
                 let node = &self.nodes[current as usize];
-                let (mut mask, entry) = intersect_node(node, ray, *tmax);
+                let (mut mask, entry) = node_test(node, *tmax);
                 if mask != 0 {
                     let mut hits = [(0 as ChildRef, T::default()); WIDTH];
                     let mut n = 0;
@@ -506,14 +519,26 @@ impl<T: Scalar> Bvh<T> {
     /// Any-hit traversal: stops as soon as `leaf(first, count)` reports a hit.
     #[inline]
     pub fn any(&self, ray: &BoxRay<T>, tmax: T, leaf: impl FnMut(u32, u32) -> bool) -> bool {
+        self.any_by(|node| intersect_node(node, ray, tmax).0, leaf)
+    }
+
+    /// [`Bvh::any`] with another node test, which must return the child mask
+    /// [`intersect_node`] returns for the ray and its `tmax`.
+    #[inline(always)]
+    pub fn any_by(
+        &self,
+        node_test: impl Fn(&Node<T>) -> u32,
+        leaf: impl FnMut(u32, u32) -> bool,
+    ) -> bool {
         if self.nodes.is_empty() {
             return false;
         }
         if self.stack_bound <= INLINE_STACK {
-            self.any_with(&mut InlineStack::<T, INLINE_STACK>::new(), ray, tmax, leaf)
+            let mut stack = InlineStack::<T, INLINE_STACK>::new();
+            self.any_with(&mut stack, node_test, leaf)
         } else {
             let mut stack = Vec::with_capacity(self.stack_bound);
-            self.any_with(&mut stack, ray, tmax, leaf)
+            self.any_with(&mut stack, node_test, leaf)
         }
     }
 
@@ -521,8 +546,7 @@ impl<T: Scalar> Bvh<T> {
     fn any_with(
         &self,
         stack: &mut impl Stack<T>,
-        ray: &BoxRay<T>,
-        tmax: T,
+        node_test: impl Fn(&Node<T>) -> u32,
         mut leaf: impl FnMut(u32, u32) -> bool,
     ) -> bool {
         let mut current: ChildRef = 0;
@@ -534,7 +558,7 @@ impl<T: Scalar> Bvh<T> {
                 }
             } else {
                 let node = &self.nodes[current as usize];
-                let (mut mask, _) = intersect_node(node, ray, tmax);
+                let mut mask = node_test(node);
                 if mask != 0 {
                     let first = mask.trailing_zeros() as usize;
                     mask &= mask - 1;

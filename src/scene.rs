@@ -212,6 +212,8 @@ pub struct Scene {
     triangles: Arc<TriangleTree>,
     /// Whether the triangle tree is traversed by the AVX2 kernels ([`crate::simd`]).
     simd: bool,
+    /// Whether the AVX2 kernels are used at all (the spheres' tree needs no more).
+    avx2: bool,
     counts: SceneCounts,
 }
 
@@ -264,6 +266,7 @@ impl Scene {
             spheres_by_id: spheres.clone(),
             sphere_bvh,
             simd: simd_available() && triangles.bvh.stack_bound() <= SIMD_STACK,
+            avx2: simd_available(),
             triangles,
             counts,
         }
@@ -293,6 +296,7 @@ impl Scene {
     /// paths; both give bit-identical results.
     pub fn set_simd(&mut self, on: bool) {
         self.simd = on && simd_available() && self.triangles.bvh.stack_bound() <= SIMD_STACK;
+        self.avx2 = on && simd_available();
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -325,18 +329,24 @@ impl Scene {
         let mut tmax = best.map_or(ray.tmax, |h| h.t);
         if !self.sphere_bvh.is_empty() {
             let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
-            self.sphere_bvh
-                .closest(&box_ray, &mut tmax, |first, count, tmax| {
-                    for i in first..first + count {
-                        if let Some(t) = self.spheres[i as usize].intersect(ray, *tmax) {
-                            *tmax = t;
-                            best = Some(Hit {
-                                t,
-                                primitive: Primitive::Sphere(self.sphere_ids[i as usize]),
-                            });
-                        }
+            let leaf = |first, count, tmax: &mut f64| {
+                for i in first..first + count {
+                    if let Some(t) = self.spheres[i as usize].intersect(ray, *tmax) {
+                        *tmax = t;
+                        best = Some(Hit {
+                            t,
+                            primitive: Primitive::Sphere(self.sphere_ids[i as usize]),
+                        });
                     }
-                });
+                }
+            };
+            #[cfg(target_arch = "x86_64")]
+            if self.avx2 {
+                // SAFETY: `avx2` is set only when the CPU has it.
+                unsafe { crate::simd::wide_closest(&self.sphere_bvh, &box_ray, &mut tmax, leaf) };
+                return best;
+            }
+            self.sphere_bvh.closest(&box_ray, &mut tmax, leaf);
         }
         best
     }
@@ -488,10 +498,16 @@ impl Scene {
             return false;
         }
         let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
-        self.sphere_bvh.any(&box_ray, ray.tmax, |first, count| {
+        let leaf = |first, count| {
             (first..first + count)
                 .any(|i| self.spheres[i as usize].intersect(ray, ray.tmax).is_some())
-        })
+        };
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only when the CPU has it.
+            return unsafe { crate::simd::wide_any(&self.sphere_bvh, &box_ray, ray.tmax, leaf) };
+        }
+        self.sphere_bvh.any(&box_ray, ray.tmax, leaf)
     }
 
     /// Whether a triangle has `ray.tmin < t < ray.tmax` for the ray rounded to float32.

@@ -11,7 +11,7 @@
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::bvh::{BoxRay, Bvh, LEAF, Node, WIDTH, leaf_range};
 use crate::ray::Ray;
 use crate::scene::TriangleRay;
 use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit, edge_functions_f64};
@@ -509,4 +509,107 @@ pub(crate) fn push_sorted(stack: &mut [MaybeUninit<u64>], base: usize, sp: &mut 
     }
     stack[j] = MaybeUninit::new(key);
     *sp += 1;
+}
+
+/// A float64 ray's constants for the 8-wide box test of the spheres' tree, broadcast once.
+pub(crate) struct WideLanes {
+    origin: [__m256d; 3],
+    inv_dir: [__m256d; 3],
+    inv_dir_far: [__m256d; 3],
+    near: [usize; 3],
+    far: [usize; 3],
+    tmin: __m256d,
+}
+
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn wide_lanes(ray: &BoxRay<f64>) -> WideLanes {
+    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        WideLanes {
+            origin: ray.origin.map(|o| _mm256_set1_pd(o)),
+            inv_dir: ray.inv_dir.map(|d| _mm256_set1_pd(d)),
+            inv_dir_far: ray.inv_dir_far.map(|d| _mm256_set1_pd(d)),
+            near: [0, 1, 2].map(|a| offset(ray.near[a], a)),
+            far: [0, 1, 2].map(|a| offset(1 - ray.near[a], a)),
+            tmin: _mm256_set1_pd(ray.tmin),
+        }
+    }
+}
+
+/// [`crate::bvh::intersect_node`] for a float64 node, four children per instruction: the
+/// same operations in the same order (`max(a, b)` returns `b` when `a` is NaN, as
+/// `max_keep` does), so the same mask and entries.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn wide_node_test(node: &Node<f64>, r: &WideLanes, tmax: f64) -> (u32, [f64; WIDTH]) {
+    let planes = node.planes.as_ptr().cast::<f64>();
+    let mut entry = [0f64; WIDTH];
+    let mut mask = 0;
+    // SAFETY: offsets are below 6 × 8 doubles, nodes are 64-byte aligned so each group of
+    // four doubles is 32-byte aligned, and `entry` holds eight doubles.
+    unsafe {
+        let tmax = _mm256_set1_pd(tmax);
+        for half in [0, 4] {
+            let slab = |offset: usize, axis: usize, inv: __m256d| {
+                _mm256_mul_pd(
+                    _mm256_sub_pd(_mm256_load_pd(planes.add(offset + half)), r.origin[axis]),
+                    inv,
+                )
+            };
+            let nx = slab(r.near[0], 0, r.inv_dir[0]);
+            let ny = slab(r.near[1], 1, r.inv_dir[1]);
+            let nz = slab(r.near[2], 2, r.inv_dir[2]);
+            let fx = slab(r.far[0], 0, r.inv_dir_far[0]);
+            let fy = slab(r.far[1], 1, r.inv_dir_far[1]);
+            let fz = slab(r.far[2], 2, r.inv_dir_far[2]);
+            let enter = _mm256_max_pd(nx, _mm256_max_pd(ny, _mm256_max_pd(nz, r.tmin)));
+            let exit = _mm256_min_pd(fx, _mm256_min_pd(fy, _mm256_min_pd(fz, tmax)));
+            let hit = _mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit);
+            mask |= (_mm256_movemask_pd(hit) as u32) << half;
+            _mm256_storeu_pd(entry.as_mut_ptr().add(half), enter);
+        }
+    }
+    (mask, entry)
+}
+
+/// [`Bvh::closest`] over a float64 tree with the AVX2 box test: the same visits in the
+/// same order.
+///
+/// # Safety
+/// The CPU must support AVX2 ([`available`]).
+#[target_feature(enable = "avx2")]
+pub unsafe fn wide_closest(
+    bvh: &Bvh<f64>,
+    ray: &BoxRay<f64>,
+    tmax: &mut f64,
+    leaf: impl FnMut(u32, u32, &mut f64),
+) {
+    // SAFETY (for the helpers): AVX2 is enabled in this function.
+    let r = unsafe { wide_lanes(ray) };
+    bvh.closest_by(
+        |node, tmax| unsafe { wide_node_test(node, &r, tmax) },
+        tmax,
+        leaf,
+    );
+}
+
+/// [`Bvh::any`] over a float64 tree with the AVX2 box test.
+///
+/// # Safety
+/// The CPU must support AVX2 ([`available`]).
+#[target_feature(enable = "avx2")]
+pub unsafe fn wide_any(
+    bvh: &Bvh<f64>,
+    ray: &BoxRay<f64>,
+    tmax: f64,
+    leaf: impl FnMut(u32, u32) -> bool,
+) -> bool {
+    // SAFETY (for the helpers): AVX2 is enabled in this function.
+    let r = unsafe { wide_lanes(ray) };
+    bvh.any_by(|node| unsafe { wide_node_test(node, &r, tmax) }.0, leaf)
 }

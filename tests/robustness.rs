@@ -561,6 +561,76 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
 }
 
 #[test]
+fn the_avx2_sphere_tree_gives_the_same_hits_as_the_scalar_path() {
+    #[cfg(target_arch = "x86_64")]
+    if !raybatch::simd::available() {
+        eprintln!("this CPU has no AVX2: only the scalar path runs here");
+        return;
+    }
+    // Scattered spheres of many sizes, a row of spheres touching each other (rays along it
+    // meet ties), and a cluster far from the origin.
+    let mut numbers = Numbers(7);
+    let mut spheres: Vec<Sphere> = (0..600)
+        .map(|_| Sphere {
+            center: numbers.vector(10.0),
+            radius: numbers.range(0.01, 0.6),
+        })
+        .collect();
+    spheres.extend((0..20).map(|i| Sphere {
+        center: DVec3::new(f64::from(i) - 10.0, 0.25, 0.5),
+        radius: 0.5,
+    }));
+    spheres.extend((0..50).map(|_| Sphere {
+        center: DVec3::splat(1e6) + numbers.vector(1.0),
+        radius: numbers.range(1e-4, 1e-2),
+    }));
+    let mut rays: Vec<Ray> = (0..4000)
+        .map(|_| ray(numbers.vector(30.0), numbers.vector(8.0)))
+        .collect();
+    rays.extend((0..200).map(|_| {
+        let origin = DVec3::splat(1e6) + numbers.vector(3.0);
+        ray(origin, DVec3::splat(1e6) + numbers.vector(1.0))
+    }));
+    for d in [
+        [1.0, 0.0, 0.0],
+        [-1.0, -0.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [1.0, 1.0, 0.0],
+    ] {
+        for k in 0..40 {
+            let offset = DVec3::new(0.0, 0.02 * f64::from(k) - 0.4, 0.013 * f64::from(k));
+            rays.push(Ray {
+                origin: DVec3::new(-12.0, 0.25, 0.5) + offset,
+                direction: DVec3::from_array(d).normalize(),
+                tmin: 0.0,
+                tmax: f64::INFINITY,
+            });
+        }
+    }
+    for preset in [BuildPreset::Fast, BuildPreset::Medium] {
+        let mut scene = Scene::build_with(
+            &SceneGeometry {
+                spheres: spheres.clone(),
+                ..SceneGeometry::default()
+            },
+            preset,
+        );
+        let trace = |scene: &Scene| -> Vec<_> {
+            rays.iter()
+                .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
+                .collect()
+        };
+        let fast = trace(&scene);
+        scene.set_simd(false);
+        let scalar = trace(&scene);
+        assert!(fast.iter().filter(|h| h.0.is_some()).count() > 1000);
+        for (i, (a, b)) in fast.iter().zip(&scalar).enumerate() {
+            assert_eq!(a, b, "{preset:?}: ray {i}: {:?}", rays[i]);
+        }
+    }
+}
+
+#[test]
 fn rays_through_shared_vertices_find_the_same_nearest_hit_in_any_visiting_order() {
     // A computed triangle distance can round a few ulps below its box's computed entry:
     // a search that has already found a hit must still enter such boxes, or it misses a
