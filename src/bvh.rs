@@ -23,6 +23,8 @@ use obvhs::BvhBuildParams;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::Bvh2;
 
+use rayon::prelude::*;
+
 use crate::collapse::Collapse;
 
 /// Children per node.
@@ -165,6 +167,30 @@ impl<T: Scalar> Node<T> {
         Node {
             planes: [[[T::INFINITY; WIDTH]; 3], [[T::NEG_INFINITY; WIDTH]; 3]],
             children: [0; WIDTH],
+        }
+    }
+
+    /// Moves a node of a [`Part`] into the whole tree: inner references (other than to the
+    /// part's root, which nothing inside the part refers to) shift by `node_offset`, and
+    /// leaves turn from positions in the part's order into items.
+    fn relocate(
+        &mut self,
+        node_offset: u32,
+        first_primitive: u32,
+        leaf_items: &impl Fn(u32, u32) -> (u32, u32),
+    ) {
+        for child in &mut self.children {
+            // Empty slots keep reference 0 (never followed: their boxes are empty).
+            if *child == 0 {
+                continue;
+            }
+            if *child & LEAF == 0 {
+                *child += node_offset;
+            } else {
+                let (first, count) = leaf_range(*child);
+                let (first, count) = leaf_items(first_primitive + first, count);
+                *child = leaf_ref(first, count);
+            }
         }
     }
 
@@ -314,19 +340,24 @@ impl<T: Scalar> Bvh<T> {
     /// primitive per leaf) and reinsertion optimizer shape a binary tree, which is
     /// collapsed into 8-wide nodes with leaves of at most `params.max_prims_per_leaf`
     /// primitives ([`crate::collapse`]). Each slot's box is the union of its primitives'
-    /// boxes, exactly. `emit_leaf` receives each leaf's primitive indices and returns the
-    /// `(first, count)` of the items it laid out for them (`count` ≤ [`MAX_LEAF_ITEMS`]).
+    /// boxes, exactly.
+    ///
+    /// Returns the tree and the primitives in leaf order: a leaf holds the primitives at
+    /// positions `first..first + count` of that order, and refers to the items
+    /// `leaf_items(first, count)` returns (the owner lays its items out in that order:
+    /// triangle blocks, spheres; at most [`MAX_LEAF_ITEMS`] per leaf).
     pub fn build(
         boxes: &[Aabb],
         params: BvhBuildParams,
-        emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
-    ) -> Bvh<T> {
+        leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
+    ) -> (Bvh<T>, Vec<u32>) {
         if boxes.is_empty() {
-            return Bvh {
+            let empty = Bvh {
                 nodes: Vec::new(),
                 stack_bound: 0,
                 depth: 0,
             };
+            return (empty, Vec::new());
         }
         let mut bvh2 = obvhs::ploc::PlocBuilder::with_capacity(boxes.len()).build(
             params.ploc_search_distance,
@@ -340,76 +371,78 @@ impl<T: Scalar> Bvh<T> {
             params.reinsertion_batch_ratio,
             None,
         );
-        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, emit_leaf)
+        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_items)
     }
 
     /// Collapses a binary obvhs tree into 8-wide nodes ([`crate::collapse`]), with leaves
-    /// of at most `max_leaf` primitives (a binary leaf with more stays whole). Slot boxes
-    /// are the binary nodes' boxes, which obvhs keeps as exact unions of the primitives'
-    /// (`bvh::tests::slot_boxes_are_exact_unions_of_their_primitives`). Nodes are laid
-    /// out depth first, each node's inner children side by side. Iterative, so a
-    /// degenerate (very deep) tree cannot exhaust the call stack.
+    /// of at most `max_leaf` primitives (a binary leaf with more stays whole); returns the
+    /// tree and the primitives in leaf order, as [`Bvh::build`] does. Slot boxes are the
+    /// binary nodes' boxes, which obvhs keeps as exact unions of the primitives'
+    /// (`bvh::tests::slot_boxes_are_exact_unions_of_their_primitives`).
+    ///
+    /// Nodes are laid out depth first, each node's inner children side by side. The top of
+    /// the tree is laid out first; subtrees below [`PARALLEL_SUBTREE`] primitives are laid
+    /// out in parallel and appended in order. Iterative, so a degenerate (very deep) tree
+    /// cannot exhaust the call stack.
     pub fn from_bvh2(
         bvh2: &Bvh2,
         max_leaf: u32,
-        mut emit_leaf: impl FnMut(&[u32]) -> (u32, u32),
-    ) -> Bvh<T> {
+        leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
+    ) -> (Bvh<T>, Vec<u32>) {
         let collapse = Collapse::new(bvh2, max_leaf.max(1));
-        let mut nodes = Vec::with_capacity(bvh2.primitive_indices.len() / 4 + 1);
-        nodes.push(Node::empty());
-        let mut pending = vec![(0usize, 0usize, 1usize)]; // (binary node, wide node, depth)
-        let mut depth = 1;
-        let (mut children, mut walk, mut prims) = (Vec::new(), Vec::new(), Vec::new());
-        while let Some((source, target, level)) = pending.pop() {
-            depth = depth.max(level);
-            collapse.children(source, &mut children);
-            let base = nodes.len();
-            let mut inner = 0;
-            for (slot, &child) in children.iter().enumerate() {
-                let aabb = bvh2.nodes[child].aabb();
-                nodes[target].set_bounds(
-                    slot,
-                    &Bounds {
-                        min: aabb.min.to_array().map(T::from_f32),
-                        max: aabb.max.to_array().map(T::from_f32),
-                    },
-                );
-                if !collapse.is_leaf(child) {
-                    nodes[target].children[slot] = (base + inner) as ChildRef;
-                    inner += 1;
-                    continue;
-                }
-                // The subtree's primitives, left to right.
-                prims.clear();
-                walk.push(child);
-                while let Some(n) = walk.pop() {
-                    let node = &bvh2.nodes[n];
-                    let first = node.first_index as usize;
-                    if node.is_leaf() {
-                        prims.extend_from_slice(
-                            &bvh2.primitive_indices[first..first + node.prim_count as usize],
-                        );
-                    } else {
-                        walk.extend([first + 1, first]);
-                    }
-                }
-                let (first, count) = emit_leaf(&prims);
-                nodes[target].children[slot] = leaf_ref(first, count);
+        let total = bvh2.primitive_indices.len();
+        assert!(
+            total < MAX_ITEMS,
+            "at most {MAX_ITEMS} primitives in one tree"
+        );
+        let mut top = Part::default();
+        let mut deferred = Vec::new();
+        top.lay_out(&collapse, bvh2, 0, 1, |child, wide, level| {
+            let small = collapse.primitives(child) < PARALLEL_SUBTREE;
+            if small {
+                deferred.push((child, wide, level));
             }
-            nodes.resize(base + inner, Node::empty());
-            // The first inner child is built next: depth-first order.
-            for (slot, &child) in children.iter().enumerate().rev() {
-                let wide = nodes[target].children[slot];
-                if wide & LEAF == 0 {
-                    pending.push((child, wide as usize, level + 1));
-                }
-            }
+            small
+        });
+        let parts: Vec<(Part<T>, usize, usize)> = deferred
+            .into_par_iter()
+            .map(|(root, wide, level)| {
+                let mut part = Part::default();
+                part.lay_out(&collapse, bvh2, root, level, |_, _, _| false);
+                (part, wide, level)
+            })
+            .collect();
+
+        // Appended after the top: a part's root goes to the slot the top reserved for it,
+        // its other nodes after the nodes so far, its primitives after those so far.
+        let Part {
+            mut nodes,
+            mut order,
+            mut depth,
+        } = top;
+        for node in &mut nodes {
+            node.relocate(0, 0, &leaf_items);
         }
-        Bvh {
+        nodes.reserve(parts.iter().map(|p| p.0.nodes.len() - 1).sum());
+        order.reserve(total - order.len());
+        for (part, wide, _) in parts {
+            let node_offset = (nodes.len() - 1) as u32;
+            let first_primitive = order.len() as u32;
+            let mut part_nodes = part.nodes;
+            for node in &mut part_nodes {
+                node.relocate(node_offset, first_primitive, &leaf_items);
+            }
+            nodes[wide] = part_nodes[0];
+            nodes.extend_from_slice(&part_nodes[1..]);
+            order.extend_from_slice(&part.order);
+            depth = depth.max(part.depth);
+        }
+        let bvh = Bvh {
             nodes,
             stack_bound: (WIDTH - 1) * depth + 1,
             depth,
-        }
+        };
+        (bvh, order)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -579,6 +612,92 @@ impl<T: Scalar> Bvh<T> {
     }
 }
 
+/// Subtrees of fewer primitives than this are laid out in parallel by
+/// [`Bvh::from_bvh2`] (larger ones are split further first).
+pub const PARALLEL_SUBTREE: u32 = 1 << 14;
+
+/// Part of a tree being laid out: nodes (the first is the part's root), primitives in
+/// leaf order, and the depth reached. Until [`Node::relocate`], inner references are
+/// indices into `nodes` and leaves refer to positions in `order`.
+struct Part<T> {
+    nodes: Vec<Node<T>>,
+    order: Vec<u32>,
+    depth: usize,
+}
+
+impl<T> Default for Part<T> {
+    fn default() -> Self {
+        Part {
+            nodes: Vec::new(),
+            order: Vec::new(),
+            depth: 0,
+        }
+    }
+}
+
+impl<T: Scalar> Part<T> {
+    /// Lays out the wide subtree of binary node `root` (at `level`, the root's being 1),
+    /// depth first. `defer(child, wide, level)` may take an inner child off this part: its
+    /// slot then points at the reserved node `wide`, left empty for the caller to fill.
+    fn lay_out(
+        &mut self,
+        collapse: &Collapse,
+        bvh2: &Bvh2,
+        root: usize,
+        level: usize,
+        mut defer: impl FnMut(usize, usize, usize) -> bool,
+    ) {
+        self.nodes.push(Node::empty());
+        let mut pending = vec![(root, 0usize, level)]; // (binary node, wide node, depth)
+        let (mut children, mut walk) = (Vec::new(), Vec::new());
+        while let Some((source, target, level)) = pending.pop() {
+            self.depth = self.depth.max(level);
+            collapse.children(source, &mut children);
+            let base = self.nodes.len();
+            let mut inner = 0;
+            for (slot, &child) in children.iter().enumerate() {
+                let aabb = bvh2.nodes[child].aabb();
+                self.nodes[target].set_bounds(
+                    slot,
+                    &Bounds {
+                        min: aabb.min.to_array().map(T::from_f32),
+                        max: aabb.max.to_array().map(T::from_f32),
+                    },
+                );
+                if !collapse.is_leaf(child) {
+                    self.nodes[target].children[slot] = (base + inner) as ChildRef;
+                    inner += 1;
+                    continue;
+                }
+                // The subtree's primitives, left to right.
+                let first = self.order.len();
+                walk.push(child);
+                while let Some(n) = walk.pop() {
+                    let node = &bvh2.nodes[n];
+                    let first = node.first_index as usize;
+                    if node.is_leaf() {
+                        self.order.extend_from_slice(
+                            &bvh2.primitive_indices[first..first + node.prim_count as usize],
+                        );
+                    } else {
+                        walk.extend([first + 1, first]);
+                    }
+                }
+                let count = self.order.len() - first;
+                self.nodes[target].children[slot] = leaf_ref(first as u32, count as u32);
+            }
+            self.nodes.resize(base + inner, Node::empty());
+            // The first inner child is laid out next: depth-first order.
+            for (slot, &child) in children.iter().enumerate().rev() {
+                let wide = self.nodes[target].children[slot];
+                if wide & LEAF == 0 && !defer(child, wide as usize, level + 1) {
+                    pending.push((child, wide as usize, level + 1));
+                }
+            }
+        }
+    }
+}
+
 /// The float32 box obvhs needs for a primitive, rounded outward from exact float64 bounds.
 pub fn outward_f32(min: [f64; 3], max: [f64; 3]) -> Aabb {
     Aabb::new(
@@ -729,23 +848,28 @@ mod tests {
     #[test]
     fn slot_boxes_are_exact_unions_of_their_primitives() {
         // For every preset and leaf size: a box obvhs had padded or shrunk, or a slot
-        // pointing at the wrong subtree, fails here.
-        let boxes = scattered_boxes(5000);
-        for preset in BuildPreset::ALL {
-            for max_leaf in [1, 3, 4] {
-                let mut order: Vec<u32> = Vec::new();
-                let bvh: Bvh<f32> = Bvh::build(&boxes, preset.params(max_leaf), |prims| {
-                    assert!(prims.len() <= max_leaf as usize, "{preset:?}");
-                    let first = order.len() as u32;
-                    order.extend_from_slice(prims);
-                    (first, prims.len() as u32)
-                });
-                let mut seen = vec![false; boxes.len()];
-                checked_union(&bvh, 0, &order, &boxes, &mut seen);
-                assert!(
-                    seen.iter().all(|&s| s),
-                    "{preset:?}: a primitive is missing"
-                );
+        // pointing at the wrong subtree, fails here. The larger set is split into parts
+        // laid out in parallel, whose nodes and leaves are then moved into place.
+        for (count, presets) in [
+            (5000, &BuildPreset::ALL[..]),
+            (20 * PARALLEL_SUBTREE as usize, &[BuildPreset::Fast][..]),
+        ] {
+            let boxes = scattered_boxes(count);
+            for &preset in presets {
+                for max_leaf in [1, 3, 4] {
+                    let (bvh, order): (Bvh<f32>, _) =
+                        Bvh::build(&boxes, preset.params(max_leaf), |first, count| {
+                            assert!(count <= max_leaf, "{preset:?}");
+                            (first, count)
+                        });
+                    assert_eq!(order.len(), boxes.len());
+                    let mut seen = vec![false; boxes.len()];
+                    checked_union(&bvh, 0, &order, &boxes, &mut seen);
+                    assert!(
+                        seen.iter().all(|&s| s),
+                        "{preset:?}: a primitive is missing"
+                    );
+                }
             }
         }
     }

@@ -10,7 +10,7 @@
 //! own, whose eight slots are shared between the two children); `i > 0` shares `i + 1`
 //! slots between the children or takes the answer for fewer slots.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
 use obvhs::bvh2::Bvh2;
 
@@ -71,6 +71,8 @@ impl Choice {
 pub struct Collapse<'a> {
     bvh2: &'a Bvh2,
     choices: Vec<AtomicU64>,
+    /// Primitives under each binary node.
+    primitives: Vec<AtomicU32>,
 }
 
 impl<'a> Collapse<'a> {
@@ -79,11 +81,21 @@ impl<'a> Collapse<'a> {
     /// `max_leaf` primitives).
     pub fn new(bvh2: &'a Bvh2, max_leaf: u32) -> Collapse<'a> {
         let choices = (0..bvh2.nodes.len()).map(|_| AtomicU64::new(0)).collect();
-        let collapse = Collapse { bvh2, choices };
+        let primitives = (0..bvh2.nodes.len()).map(|_| AtomicU32::new(0)).collect();
+        let collapse = Collapse {
+            bvh2,
+            choices,
+            primitives,
+        };
         if !bvh2.nodes.is_empty() {
             collapse.cost_parallel(0, 0, max_leaf);
         }
         collapse
+    }
+
+    /// The number of primitives under binary node `n`.
+    pub fn primitives(&self, n: usize) -> u32 {
+        self.primitives[n].load(Ordering::Relaxed)
     }
 
     /// Whether binary node `n`, given a slot of its own, is a leaf.
@@ -184,6 +196,7 @@ impl<'a> Collapse<'a> {
         let cost = node.aabb().half_area() * node.prim_count as f32 * PRIMITIVE_COST;
         // Every choice is `Leaf` (all zero bits).
         self.choices[n].store(0, Ordering::Relaxed);
+        self.primitives[n].store(node.prim_count, Ordering::Relaxed);
         Costs {
             cost: [cost; SLOTS - 1],
             primitives: node.prim_count,
@@ -253,6 +266,7 @@ impl<'a> Collapse<'a> {
             }
         }
         self.store(n, &choices);
+        self.primitives[n].store(primitives, Ordering::Relaxed);
         Costs { cost, primitives }
     }
 }

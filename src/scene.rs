@@ -739,13 +739,12 @@ fn build_triangles(
     // Triangles are laid out densely in leaf order, four to a block; a leaf covers the one
     // or two blocks its range touches. Testing a neighbouring leaf's triangles on the way
     // is harmless (they are real triangles of the scene) and keeps blocks full.
-    let mut order: Vec<u32> = Vec::with_capacity(triangles.len());
-    let bvh = Bvh::build(&boxes, preset.params(TRIANGLES_PER_LEAF), |prims| {
-        let start = order.len();
-        order.extend(prims.iter().map(|&p| kept[p as usize]));
-        let (first, last) = (start / BLOCK, (order.len() - 1) / BLOCK);
-        (first as u32, (last - first + 1) as u32)
+    let block = BLOCK as u32;
+    let (bvh, order) = Bvh::build(&boxes, preset.params(TRIANGLES_PER_LEAF), |first, count| {
+        let (first_block, last_block) = (first / block, (first + count - 1) / block);
+        (first_block, last_block - first_block + 1)
     });
+    let order: Vec<u32> = order.into_iter().map(|p| kept[p as usize]).collect();
     let blocks = order
         .par_chunks(BLOCK)
         .map(|chunk| {
@@ -781,15 +780,9 @@ fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u
             )
         })
         .collect();
-    let mut order = Vec::with_capacity(spheres.len());
-    let mut ids = Vec::with_capacity(spheres.len());
-    let tree = Bvh::build(&boxes, preset.params(SPHERES_PER_LEAF), |prims| {
-        let first = order.len() as u32;
-        for &p in prims {
-            order.push(spheres[p as usize]);
-            ids.push(p);
-        }
-        (first, prims.len() as u32)
+    let (tree, ids) = Bvh::build(&boxes, preset.params(SPHERES_PER_LEAF), |first, count| {
+        (first, count)
     });
+    let order = ids.iter().map(|&p| spheres[p as usize]).collect();
     (order, ids, tree)
 }

@@ -315,7 +315,7 @@ fn a_deep_tree_never_overflows_the_traversal_stack() {
         .push(Bvh2Node::new(aabb(&bounds[m - 1]), 1, (m - 1) as u32));
     bvh2.primitive_indices = (0..m as u32).collect();
 
-    let bvh: Bvh<f32> = Bvh::from_bvh2(&bvh2, 1, |prims| (prims[0], 1));
+    let (bvh, order): (Bvh<f32>, _) = Bvh::from_bvh2(&bvh2, 1, |first, count| (first, count));
     assert!(bvh.stack_bound() > 1000, "bound {}", bvh.stack_bound());
 
     let origin = glam::Vec3::new(0.0, 0.0, 0.0);
@@ -323,7 +323,7 @@ fn a_deep_tree_never_overflows_the_traversal_stack() {
     let boxes = raybatch::bvh::BoxRay::new(origin.to_array(), direction.to_array(), 0.0);
     let sheared = ShearedRay::new(origin, direction);
     let test = |i: u32, tmax: f32| {
-        let t = &triangles[i as usize];
+        let t = &triangles[order[i as usize] as usize];
         triangle::intersect(&sheared, t[0], t[1], t[2], 0.0, tmax)
     };
     let mut tmax = f32::INFINITY;
