@@ -11,6 +11,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::manifest::{Encoding, OutputFormat, PpmStyle, Rgb};
 
+use rayon::prelude::*;
+
 /// Pixels in their stored form, row-major from the top-left.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Pixels {
@@ -80,39 +82,58 @@ impl Image {
 
     /// The complete file contents.
     pub fn to_bytes(&self) -> Vec<u8> {
+        self.file_parts().concat()
+    }
+
+    /// The file contents in consecutive parts: the header, then the pixels (in bands of
+    /// rows for `P3`, formatted in parallel: a full-HD image is 25 MB of text).
+    fn file_parts(&self) -> Vec<Vec<u8>> {
         let (w, h) = (self.width as usize, self.height as usize);
         match (&self.pixels, self.format) {
             (Pixels::Rgb8(bytes), OutputFormat::Ppm(PpmStyle::Binary)) => {
-                let mut out = format!("P6\n{w} {h}\n255\n").into_bytes();
-                out.extend_from_slice(bytes);
-                out
+                vec![format!("P6\n{w} {h}\n255\n").into_bytes(), bytes.clone()]
             }
             (Pixels::Rgb8(bytes), _) => {
-                let mut out = format!("P3\n{w} {h}\n255\n").into_bytes();
-                out.reserve(bytes.len() * 4);
-                for pixel in bytes.chunks_exact(3) {
-                    let _ = writeln!(out, "{} {} {}", pixel[0], pixel[1], pixel[2]);
-                }
-                out
+                let mut parts = vec![format!("P3\n{w} {h}\n255\n").into_bytes()];
+                parts.par_extend(bytes.par_chunks(3 * w.max(1) * 32).map(plain_text));
+                parts
             }
             (Pixels::RgbF32(floats), _) => {
-                let mut out = format!("PF\n{w} {h}\n-1.0\n").into_bytes();
-                out.reserve(floats.len() * 4);
+                let mut data = Vec::with_capacity(floats.len() * 4);
                 // PFM stores the bottom row first.
-                for row in floats.chunks_exact(w * 3).rev() {
+                for row in floats.chunks_exact(w.max(1) * 3).rev() {
                     for value in row {
-                        out.extend_from_slice(&value.to_le_bytes());
+                        data.extend_from_slice(&value.to_le_bytes());
                     }
                 }
-                out
+                vec![format!("PF\n{w} {h}\n-1.0\n").into_bytes(), data]
             }
         }
     }
 
     /// Writes the image to `path` atomically (see [`write_atomically`]).
     pub fn write(&self, path: &Path) -> io::Result<()> {
-        write_atomically(path, &self.to_bytes())
+        write_parts_atomically(path, &self.file_parts())
     }
+}
+
+/// `P3` pixel data: "r g b" and a newline per pixel.
+fn plain_text(pixels: &[u8]) -> Vec<u8> {
+    // At most "255 255 255\n" per pixel; each value is copied as four bytes (digits and
+    // a separator) and the position advanced by its length.
+    let mut text = vec![0u8; pixels.len() / 3 * 12 + 4];
+    let mut at = 0;
+    for pixel in pixels.chunks_exact(3) {
+        for &value in pixel {
+            let (digits, len) = DECIMAL[usize::from(value)];
+            text[at..at + 4].copy_from_slice(&[digits[0], digits[1], digits[2], b' ']);
+            text[at + usize::from(len)] = b' ';
+            at += usize::from(len) + 1;
+        }
+        text[at - 1] = b'\n';
+    }
+    text.truncate(at);
+    text
 }
 
 /// An image read back from a PPM (`P3`/`P6`, any maxval) or PFM (`PF`/`Pf`) file, in the
@@ -373,10 +394,33 @@ pub fn quantize(c: f64) -> u8 {
     }
 }
 
+/// The decimal digits of every byte value, and how many there are.
+const DECIMAL: [([u8; 3], u8); 256] = {
+    let mut table = [([0u8; 3], 0u8); 256];
+    let mut v = 0;
+    while v < 256 {
+        let (hundreds, tens, ones) = ((v / 100) as u8, (v / 10 % 10) as u8, (v % 10) as u8);
+        table[v] = if v >= 100 {
+            ([b'0' + hundreds, b'0' + tens, b'0' + ones], 3)
+        } else if v >= 10 {
+            ([b'0' + tens, b'0' + ones, 0], 2)
+        } else {
+            ([b'0' + ones, 0, 0], 1)
+        };
+        v += 1;
+    }
+    table
+};
+
 /// Writes `bytes` to a hidden temporary file beside `path`, then renames it over `path`:
 /// readers see the old file or the whole new one, never a part. Creates missing parent
 /// folders. On failure the temporary file is removed.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    write_parts_atomically(path, &[bytes])
+}
+
+/// [`write_atomically`] for contents given as consecutive parts.
+pub fn write_parts_atomically(path: &Path, parts: &[impl AsRef<[u8]>]) -> io::Result<()> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let name = path
         .file_name()
@@ -394,7 +438,14 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> io::Result<()> {
         COUNTER.fetch_add(1, Ordering::Relaxed)
     ));
     let temporary = folder.join(temporary_name);
-    let result = std::fs::write(&temporary, bytes).and_then(|()| std::fs::rename(&temporary, path));
+    let write = || -> io::Result<()> {
+        let mut file = std::fs::File::create(&temporary)?;
+        for part in parts {
+            file.write_all(part.as_ref())?;
+        }
+        Ok(())
+    };
+    let result = write().and_then(|()| std::fs::rename(&temporary, path));
     if result.is_err() {
         let _ = std::fs::remove_file(&temporary);
     }
@@ -431,6 +482,28 @@ mod tests {
         assert_eq!(encode(c, Encoding::Srgb), 1.055 * c.powf(1.0 / 2.4) - 0.055);
         assert!((encode(1.0, Encoding::Srgb) - 1.0).abs() < 1e-12);
         assert_eq!(encode(0.3, Encoding::Linear), 0.3);
+    }
+
+    #[test]
+    fn plain_ppm_text_is_each_pixel_formatted_on_its_line() {
+        // Every byte value, over more rows than one parallel band holds.
+        let (w, h) = (97, 70);
+        let mut image = Image::new(w, h, OutputFormat::Ppm(PpmStyle::Plain), Encoding::Linear);
+        let value = |x: u32, y: u32, k: u32| (x * 7 + y * 13 + k * 101) % 256;
+        for y in 0..h {
+            for x in 0..w {
+                let c = [0, 1, 2].map(|k| (f64::from(value(x, y, k)) + 0.5) / 256.0);
+                image.set(x, y, c);
+            }
+        }
+        let mut expected = format!("P3\n{w} {h}\n255\n");
+        for y in 0..h {
+            for x in 0..w {
+                let [r, g, b] = [0, 1, 2].map(|k| value(x, y, k));
+                expected.push_str(&format!("{r} {g} {b}\n"));
+            }
+        }
+        assert_eq!(String::from_utf8(image.to_bytes()).unwrap(), expected);
     }
 
     #[test]
