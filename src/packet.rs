@@ -34,9 +34,10 @@ impl Rows {
     const ZERO: Rows = Rows([[0.0; 8]; ROWS]);
 }
 
-/// Closest hits of up to [`PACKET`] rays traced together; `out[i]` receives ray `i`'s
-/// nearest triangle hit (as [`crate::simd::closest`] would). Returns `false`, touching
-/// nothing, when the rays' directions differ in sign on some axis.
+/// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
+/// called for each ray `i` with a triangle hit, the nearest (as [`crate::simd::closest`]
+/// finds it). Returns `false`, calling nothing, when the rays' directions differ in sign
+/// on some axis.
 ///
 /// # Safety
 /// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
@@ -45,11 +46,10 @@ pub unsafe fn closest(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
-    out: &mut [Option<(Nearest, TriangleHit)>],
+    found: impl FnMut(usize, Nearest, TriangleHit),
 ) -> bool {
-    assert_eq!(rays.len(), out.len());
     // SAFETY: as required of the caller.
-    unsafe { trace::<false>(bvh, blocks, rays, out, &mut []) }
+    unsafe { trace::<false>(bvh, blocks, rays, found, &mut []) }
 }
 
 /// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
@@ -67,16 +67,17 @@ pub unsafe fn any(
 ) -> bool {
     assert_eq!(rays.len(), out.len());
     // SAFETY: as required of the caller.
-    unsafe { trace::<true>(bvh, blocks, rays, &mut [], out) }
+    unsafe { trace::<true>(bvh, blocks, rays, |_, _, _| (), out) }
 }
 
-/// The packet traversal: closest hits into `closest`, or with `ANY` hit flags into `any`.
+/// The packet traversal: closest hits reported to `closest`, or with `ANY` hit flags
+/// into `any`.
 #[target_feature(enable = "avx2")]
 unsafe fn trace<const ANY: bool>(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
-    closest: &mut [Option<(Nearest, TriangleHit)>],
+    mut closest: impl FnMut(usize, Nearest, TriangleHit),
     any: &mut [bool],
 ) -> bool {
     assert!(rays.len() <= PACKET);
@@ -145,8 +146,6 @@ unsafe fn trace<const ANY: bool>(
     }
     let nodes = bvh.nodes();
     if nodes.is_empty() {
-        closest.fill(None);
-        any.fill(false);
         return true;
     }
     let mut live = n;
@@ -293,7 +292,9 @@ unsafe fn trace<const ANY: bool>(
             if sp == 0 || (ANY && live == 0) {
                 if !ANY {
                     for k in 0..n {
-                        closest[k] = found[k].map(|hit| (nearest[k], hit));
+                        if let Some(hit) = found[k] {
+                            closest(k, nearest[k], hit);
+                        }
                     }
                 }
                 return true;

@@ -356,38 +356,39 @@ impl Scene {
     /// traced as packets where the CPU allows, which is much faster.
     pub fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len());
+        let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             let mut prepared = [TriangleRay::EMPTY; PACKET];
             for (k, ray) in rays.iter().enumerate() {
-                out[k] = self.closest_analytic(ray);
-                prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
+                let mut tmax = ray.tmax;
+                out[k] = None;
+                if analytic {
+                    out[k] = self.closest_analytic(ray);
+                    tmax = out[k].map_or(tmax, |h| h.t);
+                }
+                prepared[k] = TriangleRay::new(ray, tmax);
             }
             if self.triangles.bvh.is_empty() {
                 continue;
             }
             let prepared = &prepared[..rays.len()];
-            let mut triangles = [None; PACKET];
-            let triangles = &mut triangles[..rays.len()];
             #[cfg(target_arch = "x86_64")]
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            let traced = self.simd
+            if self.simd
                 && unsafe {
                     crate::packet::closest(
                         &self.triangles.bvh,
                         &self.triangles.blocks,
                         prepared,
-                        triangles,
+                        |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
                     )
-                };
-            #[cfg(not(target_arch = "x86_64"))]
-            let traced = false;
+                }
+            {
+                continue;
+            }
             for (k, ray) in rays.iter().enumerate() {
-                let found = if traced {
-                    triangles[k]
-                } else {
-                    self.nearest_triangle(ray, out[k].map_or(ray.tmax, |h| h.t))
-                };
-                if let Some((nearest, hit)) = found {
+                let tmax = out[k].map_or(ray.tmax, |h| h.t);
+                if let Some((nearest, hit)) = self.nearest_triangle(ray, tmax) {
                     out[k] = Some(Self::triangle_hit(nearest, hit));
                 }
             }
@@ -405,9 +406,10 @@ impl Scene {
     /// runs traced as packets as in [`Scene::closest_hits`].
     pub fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len());
+        let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
-                *out = self.any_analytic(ray);
+                *out = analytic && self.any_analytic(ray);
             }
             if self.triangles.bvh.is_empty() {
                 continue;
