@@ -631,6 +631,64 @@ fn the_avx2_sphere_tree_gives_the_same_hits_as_the_scalar_path() {
 }
 
 #[test]
+fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
+    // Spheres in front of, behind and cutting through a mesh, over a plane: a batch must
+    // keep the analytic hit where it is nearer and the triangle where that is nearer.
+    let mut geometry = placed(&procedural::icosphere(3), DMat4::IDENTITY);
+    geometry.spheres = vec![
+        Sphere {
+            center: DVec3::new(0.5, 0.3, -1.2),
+            radius: 0.4,
+        },
+        Sphere {
+            center: DVec3::new(-0.6, -0.2, 0.0),
+            radius: 0.6,
+        },
+        Sphere {
+            center: DVec3::new(0.0, 0.0, 2.0),
+            radius: 2.5,
+        },
+    ];
+    geometry.planes = vec![raybatch::plane::Plane {
+        point: DVec3::new(0.0, -0.9, 0.0),
+        normal: DVec3::Y,
+    }];
+    let scene = Scene::build(&geometry);
+    let eye = DVec3::new(0.2, 0.4, -4.0);
+    let rays: Vec<Ray> = (0..64 * 64)
+        .map(|i| {
+            let (tile, k) = (i / 64, i % 64);
+            let (x, y) = (tile % 8 * 8 + k % 8, tile / 8 * 8 + k / 8);
+            let d = crate::util::default_camera_direction(x, y, 64, 64);
+            ray(eye, eye + DVec3::from_array(d))
+        })
+        .collect();
+    let mut closest = vec![None; rays.len()];
+    let mut any = vec![false; rays.len()];
+    for ((rays, closest), any) in rays
+        .chunks(64)
+        .zip(closest.chunks_mut(64))
+        .zip(any.chunks_mut(64))
+    {
+        scene.closest_hits(rays, closest);
+        scene.any_hits(rays, any);
+    }
+    let mut kinds = [0; 3];
+    for (i, r) in rays.iter().enumerate() {
+        assert_eq!(closest[i], scene.closest_hit(r), "ray {i}");
+        assert_eq!(any[i], scene.any_hit(r), "ray {i}");
+        if let Some(hit) = closest[i] {
+            kinds[match hit.primitive {
+                raybatch::scene::Primitive::Plane(_) => 0,
+                raybatch::scene::Primitive::Sphere(_) => 1,
+                raybatch::scene::Primitive::Triangle { .. } => 2,
+            }] += 1;
+        }
+    }
+    assert!(kinds.iter().all(|&k| k > 50), "hits per kind: {kinds:?}");
+}
+
+#[test]
 fn rays_through_shared_vertices_find_the_same_nearest_hit_in_any_visiting_order() {
     // A computed triangle distance can round a few ulps below its box's computed entry:
     // a search that has already found a hit must still enter such boxes, or it misses a
