@@ -242,7 +242,7 @@ fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
 }
 
 /// Builds per tracer and scene; the median is reported.
-const BUILDS: usize = 3;
+const BUILDS: usize = 5;
 
 /// The pixel-centre rays, in 8 × 8 groups of neighbouring pixels (as the renderer traces
 /// them), the same order for every tracer.
@@ -546,18 +546,18 @@ impl BenchReport {
         );
         let _ = writeln!(
             out,
-            "| scene | primitives | threads | closest 1 | closest 64 | any 1 | any 64 |{}",
+            "| scene | primitives | threads | closest 1 | closest 64 | any 1 | any 64 | any 1 / closest 1 |{}",
             if with_embree {
-                " Embree closest 1 | Embree closest 64 | Embree any 1 | Embree any 64 | closest / Embree 1 | closest 64 / Embree 64 |"
+                " Embree closest 1 | Embree closest 64 | Embree any 1 | Embree any 64 | closest 1 / Embree 1 | closest 64 / Embree 1 | closest 64 / Embree 64 |"
             } else {
                 ""
             }
         );
         let _ = writeln!(
             out,
-            "|---|---:|---:|---:|---:|---:|---:|{}",
+            "|---|---:|---:|---:|---:|---:|---:|---:|{}",
             if with_embree {
-                "---:|---:|---:|---:|---:|---:|"
+                "---:|---:|---:|---:|---:|---:|---:|"
             } else {
                 ""
             }
@@ -571,19 +571,26 @@ impl BenchReport {
             for (i, t) in s.raybatch.throughput.iter().enumerate() {
                 let _ = write!(
                     out,
-                    "| {} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} |",
-                    s.name, primitives, t.threads, t.closest, t.closest_batch, t.any, t.any_batch
+                    "| {} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x |",
+                    s.name,
+                    primitives,
+                    t.threads,
+                    t.closest,
+                    t.closest_batch,
+                    t.any,
+                    t.any_batch,
+                    t.any / t.closest
                 );
                 if let Some(e) = s.embree.as_ref().and_then(|e| e.throughput.get(i)) {
-                    let best = t.closest.max(t.closest_batch);
                     let _ = write!(
                         out,
-                        " {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x | {:.2}x |",
+                        " {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x | {:.2}x | {:.2}x |",
                         e.closest,
                         e.closest_batch,
                         e.any,
                         e.any_batch,
-                        best / e.closest,
+                        t.closest / e.closest,
+                        t.closest_batch / e.closest,
                         t.closest_batch / e.closest_batch
                     );
                 }
