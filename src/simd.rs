@@ -146,6 +146,32 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
     }
 }
 
+/// The slab test's arithmetic, one lane per child, for float32 (`_ps`) or float64 (`_pd`)
+/// lanes: `(entry, entered)` for the children whose planes start `first` lanes into each
+/// plane row. `max(a, b)` returns `b` when `a` is NaN, as the scalar `max_keep(a, b)` does,
+/// so the operand order matters. A macro, so that it inlines into the AVX2 functions.
+macro_rules! slab_test {
+    ($r:expr, $planes:expr, $first:expr, $tmin:expr, $tmax:expr,
+     $load:ident, $sub:ident, $mul:ident, $max:ident, $min:ident, $cmp:ident) => {{
+        let r = $r;
+        let slab = |offset: usize, axis: usize, inv| {
+            $mul(
+                $sub($load($planes.add(offset + $first)), r.origin[axis]),
+                inv,
+            )
+        };
+        let nx = slab(r.near[0], 0, r.inv_dir[0]);
+        let ny = slab(r.near[1], 1, r.inv_dir[1]);
+        let nz = slab(r.near[2], 2, r.inv_dir[2]);
+        let fx = slab(r.far[0], 0, r.inv_dir_far[0]);
+        let fy = slab(r.far[1], 1, r.inv_dir_far[1]);
+        let fz = slab(r.far[2], 2, r.inv_dir_far[2]);
+        let enter = $max(nx, $max(ny, $max(nz, $tmin)));
+        let exit = $min(fx, $min(fy, $min(fz, $tmax)));
+        (enter, $cmp::<_CMP_LE_OQ>(enter, exit))
+    }};
+}
+
 /// The slab test of all eight children: a hit bit per child and the entry distances.
 /// Operand order matters: `max(a, b)` returns `b` when `a` is NaN, as the scalar test's
 /// NaN-ignoring `max_keep(a, b)` does.
@@ -158,21 +184,8 @@ unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) 
     // SAFETY: the offsets are below 6 × 8 floats, and nodes are 64-byte aligned so every
     // 8-float plane starts on a 32-byte boundary; AVX2 is enabled in the caller.
     unsafe {
-        let slab = |offset: usize, axis: usize, inv: __m256| {
-            _mm256_mul_ps(
-                _mm256_sub_ps(_mm256_load_ps(planes.add(offset)), r.origin[axis]),
-                inv,
-            )
-        };
-        let nx = slab(r.near[0], 0, r.inv_dir[0]);
-        let ny = slab(r.near[1], 1, r.inv_dir[1]);
-        let nz = slab(r.near[2], 2, r.inv_dir[2]);
-        let fx = slab(r.far[0], 0, r.inv_dir_far[0]);
-        let fy = slab(r.far[1], 1, r.inv_dir_far[1]);
-        let fz = slab(r.far[2], 2, r.inv_dir_far[2]);
-        let enter = _mm256_max_ps(nx, _mm256_max_ps(ny, _mm256_max_ps(nz, r.tmin8)));
-        let exit = _mm256_min_ps(fx, _mm256_min_ps(fy, _mm256_min_ps(fz, tmax)));
-        let hit = _mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit);
+        let (enter, hit) = slab_test! { r, planes, 0, r.tmin8, tmax,
+        _mm256_load_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps, _mm256_cmp_ps };
         (_mm256_movemask_ps(hit) as u32, enter)
     }
 }
@@ -555,21 +568,8 @@ unsafe fn wide_node_test(node: &Node<f64>, r: &WideLanes, tmax: f64) -> (u32, [f
     unsafe {
         let tmax = _mm256_set1_pd(tmax);
         for half in [0, 4] {
-            let slab = |offset: usize, axis: usize, inv: __m256d| {
-                _mm256_mul_pd(
-                    _mm256_sub_pd(_mm256_load_pd(planes.add(offset + half)), r.origin[axis]),
-                    inv,
-                )
-            };
-            let nx = slab(r.near[0], 0, r.inv_dir[0]);
-            let ny = slab(r.near[1], 1, r.inv_dir[1]);
-            let nz = slab(r.near[2], 2, r.inv_dir[2]);
-            let fx = slab(r.far[0], 0, r.inv_dir_far[0]);
-            let fy = slab(r.far[1], 1, r.inv_dir_far[1]);
-            let fz = slab(r.far[2], 2, r.inv_dir_far[2]);
-            let enter = _mm256_max_pd(nx, _mm256_max_pd(ny, _mm256_max_pd(nz, r.tmin)));
-            let exit = _mm256_min_pd(fx, _mm256_min_pd(fy, _mm256_min_pd(fz, tmax)));
-            let hit = _mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit);
+            let (enter, hit) = slab_test! { r, planes, half, r.tmin, tmax,
+            _mm256_load_pd, _mm256_sub_pd, _mm256_mul_pd, _mm256_max_pd, _mm256_min_pd, _mm256_cmp_pd };
             mask |= (_mm256_movemask_pd(hit) as u32) << half;
             _mm256_storeu_pd(entry.as_mut_ptr().add(half), enter);
         }

@@ -448,14 +448,38 @@ fn a_tiny_far_sphere_matches_float64_where_the_naive_float32_formula_fails() {
     );
 }
 
+/// Closest and any hits of `rays` through the batch queries, 64 rays at a time (as the
+/// renderer groups camera rays).
+fn batch_queries(scene: &Scene, rays: &[Ray]) -> (Vec<Option<raybatch::Hit>>, Vec<bool>) {
+    let mut closest = vec![None; rays.len()];
+    let mut any = vec![false; rays.len()];
+    for ((rays, closest), any) in rays
+        .chunks(64)
+        .zip(closest.chunks_mut(64))
+        .zip(any.chunks_mut(64))
+    {
+        scene.closest_hits(rays, closest);
+        scene.any_hits(rays, any);
+    }
+    (closest, any)
+}
+
+/// Whether the AVX2 paths run here (tests comparing them with the scalar path need them).
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if raybatch::simd::available() {
+        return true;
+    }
+    eprintln!("this CPU has no AVX2: only the scalar path runs here");
+    false
+}
+
 #[test]
 fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
     // Includes rays through shared edges (the pixel grid, the icosphere from inside), where
     // which of two triangles at exactly the same distance is reported depends on the
     // visiting order: the normal integrator would show a difference.
-    #[cfg(target_arch = "x86_64")]
-    if !raybatch::simd::available() {
-        eprintln!("this CPU has no AVX2: only the scalar path runs here");
+    if !has_avx2() {
         return;
     }
     let mut numbers = Numbers(99);
@@ -528,16 +552,7 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
                     .chunks(64)
                     .all(|group| scene.traces_as_packet(group))
             );
-            let mut closest = vec![None; rays.len()];
-            let mut any = vec![false; rays.len()];
-            for ((rays, closest), any) in rays
-                .chunks(64)
-                .zip(closest.chunks_mut(64))
-                .zip(any.chunks_mut(64))
-            {
-                scene.closest_hits(rays, closest);
-                scene.any_hits(rays, any);
-            }
+            let (closest, any) = batch_queries(&scene, &rays);
             for (i, ((c, a), f)) in closest.iter().zip(&any).zip(&fast).enumerate() {
                 assert_eq!(
                     (c, a),
@@ -562,9 +577,7 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
 
 #[test]
 fn the_avx2_sphere_tree_gives_the_same_hits_as_the_scalar_path() {
-    #[cfg(target_arch = "x86_64")]
-    if !raybatch::simd::available() {
-        eprintln!("this CPU has no AVX2: only the scalar path runs here");
+    if !has_avx2() {
         return;
     }
     // Scattered spheres of many sizes, a row of spheres touching each other (rays along it
@@ -663,16 +676,7 @@ fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
             ray(eye, eye + DVec3::from_array(d))
         })
         .collect();
-    let mut closest = vec![None; rays.len()];
-    let mut any = vec![false; rays.len()];
-    for ((rays, closest), any) in rays
-        .chunks(64)
-        .zip(closest.chunks_mut(64))
-        .zip(any.chunks_mut(64))
-    {
-        scene.closest_hits(rays, closest);
-        scene.any_hits(rays, any);
-    }
+    let (closest, any) = batch_queries(&scene, &rays);
     let mut kinds = [0; 3];
     for (i, r) in rays.iter().enumerate() {
         assert_eq!(closest[i], scene.closest_hit(r), "ray {i}");
