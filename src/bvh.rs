@@ -285,8 +285,8 @@ pub enum BuildPreset {
     Fastest,
     /// obvhs' `very_fast_build`: the smallest search radius and a little reinsertion; the
     /// default. Against `Fast` it builds about a quarter faster and traces camera rays
-    /// a few per cent slower (BENCHMARKS.md), which pays whenever a job traces fewer
-    /// rays than several times its triangles.
+    /// a few per cent slower (DEVELOPERS.md, "Performance notes"), which pays whenever a
+    /// job traces fewer rays than several times its triangles.
     #[default]
     VeryFast,
     /// obvhs' `fast_build`: a wider PLOC search.

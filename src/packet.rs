@@ -16,7 +16,7 @@ use std::mem::MaybeUninit;
 use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{STACK, block_test, distance, pack, push_sorted, tri_lanes};
-use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
+use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
 pub const PACKET: usize = 64;
@@ -260,20 +260,9 @@ unsafe fn trace<const ANY: bool>(
                             improved = true;
                             break;
                         }
-                        let mut t = [0f32; 4];
-                        // SAFETY: `t` holds four floats.
-                        unsafe { _mm_storeu_ps(t.as_mut_ptr(), lanes.t) };
-                        let mut lane_bits = mask;
-                        while lane_bits != 0 {
-                            let l = lane_bits.trailing_zeros() as usize;
-                            lane_bits &= lane_bits - 1;
-                            let slot = b * BLOCK as u32 + l as u32;
-                            if nearest[k].improves(t[l], slot) {
-                                nearest[k] = Nearest { t: t[l], slot };
-                                found[k] = Some(lanes.hit(l));
-                                t_box.0[r][k % 8] = nearest[k].horizon();
-                                improved = true;
-                            }
+                        if lanes.keep_nearest(mask, b, &mut nearest[k], &mut found[k]) {
+                            t_box.0[r][k % 8] = nearest[k].horizon();
+                            improved = true;
                         }
                     }
                 }

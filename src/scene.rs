@@ -265,7 +265,7 @@ impl Scene {
             sphere_ids,
             spheres_by_id: spheres.clone(),
             sphere_bvh,
-            simd: simd_available() && triangles.bvh.stack_bound() <= SIMD_STACK,
+            simd: simd_available() && triangles.fits_simd_stack(),
             avx2: simd_available(),
             triangles,
             counts,
@@ -295,8 +295,8 @@ impl Scene {
     /// Turns the AVX2 kernels off (or back on where the CPU has them), to compare the two
     /// paths; both give bit-identical results.
     pub fn set_simd(&mut self, on: bool) {
-        self.simd = on && simd_available() && self.triangles.bvh.stack_bound() <= SIMD_STACK;
         self.avx2 = on && simd_available();
+        self.simd = self.avx2 && self.triangles.fits_simd_stack();
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -714,6 +714,11 @@ impl TriangleTree {
             bvh,
             len: triangles.len(),
         }
+    }
+
+    /// Whether the AVX2 kernels' fixed stack holds any traversal of this tree.
+    fn fits_simd_stack(&self) -> bool {
+        self.bvh.stack_bound() <= SIMD_STACK
     }
 
     /// Bytes of blocks and tree nodes.

@@ -265,6 +265,34 @@ pub(crate) struct BlockHits {
 }
 
 impl BlockHits {
+    /// Folds the hits of block `block` (lanes set in `mask`) into `nearest` and `found`
+    /// under the tie rule of [`Nearest`]; whether any lane improved on it.
+    #[inline(always)]
+    pub(crate) fn keep_nearest(
+        &self,
+        mask: u32,
+        block: u32,
+        nearest: &mut Nearest,
+        found: &mut Option<TriangleHit>,
+    ) -> bool {
+        let mut t = [0f32; 4];
+        // SAFETY: `t` holds four floats; SSE is part of x86-64.
+        unsafe { _mm_storeu_ps(t.as_mut_ptr(), self.t) };
+        let mut improved = false;
+        let mut m = mask;
+        while m != 0 {
+            let lane = m.trailing_zeros() as usize;
+            m &= m - 1;
+            let slot = block * BLOCK as u32 + lane as u32;
+            if nearest.improves(t[lane], slot) {
+                *nearest = Nearest { t: t[lane], slot };
+                *found = Some(self.hit(lane));
+                improved = true;
+            }
+        }
+        improved
+    }
+
     /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
     #[inline(always)]
     pub(crate) fn hit(&self, lane: usize) -> TriangleHit {
@@ -421,19 +449,7 @@ pub unsafe fn closest(
         for b in first..first + count {
             let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &r.tri, t_tri) };
             if mask != 0 {
-                let mut t = [0f32; 4];
-                // SAFETY: `t` holds four floats.
-                unsafe { _mm_storeu_ps(t.as_mut_ptr(), lanes.t) };
-                let mut m = mask;
-                while m != 0 {
-                    let lane = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    let slot = b * BLOCK as u32 + lane as u32;
-                    if nearest.improves(t[lane], slot) {
-                        nearest = Nearest { t: t[lane], slot };
-                        found = Some(lanes.hit(lane));
-                    }
-                }
+                lanes.keep_nearest(mask, b, &mut nearest, &mut found);
                 t_box = _mm256_set1_ps(nearest.horizon());
                 t_tri = _mm_set1_ps(nearest.t.next_up());
             }
