@@ -562,6 +562,42 @@ impl<T: Scalar> Bvh<T> {
         self.any_by(|node| intersect_node(node, ray, tmax).0, leaf)
     }
 
+    /// [`Bvh::any`] over the subtree under node `start` only (`0` is the root).
+    #[inline]
+    pub fn any_below(
+        &self,
+        start: u32,
+        ray: &BoxRay<T>,
+        tmax: T,
+        leaf: impl FnMut(u32, u32) -> bool,
+    ) -> bool {
+        self.any_from(start, |node| intersect_node(node, ray, tmax).0, leaf)
+    }
+
+    /// For each item, the node `levels` levels above the node whose leaf holds it (the
+    /// root where the tree is shallower): a subtree around the item, with its neighbours.
+    /// An item in several leaves gets one of them.
+    pub fn leaf_ancestors(&self, items: usize, levels: usize) -> Vec<u32> {
+        let mut parents = vec![0u32; self.nodes.len()];
+        let mut ancestors = vec![0u32; items];
+        for (index, node) in self.nodes.iter().enumerate() {
+            for &child in &node.children {
+                if child & LEAF != 0 {
+                    let (first, count) = leaf_range(child);
+                    ancestors[first as usize..(first + count) as usize].fill(index as u32);
+                } else if child != 0 {
+                    parents[child as usize] = index as u32;
+                }
+            }
+        }
+        for node in &mut ancestors {
+            for _ in 0..levels {
+                *node = parents[*node as usize];
+            }
+        }
+        ancestors
+    }
+
     /// [`Bvh::any`] with another node test, which must return the child mask
     /// [`intersect_node`] returns for the ray and its `tmax`.
     #[inline(always)]
@@ -570,26 +606,37 @@ impl<T: Scalar> Bvh<T> {
         node_test: impl Fn(&Node<T>) -> u32,
         leaf: impl FnMut(u32, u32) -> bool,
     ) -> bool {
+        self.any_from(0, node_test, leaf)
+    }
+
+    #[inline(always)]
+    fn any_from(
+        &self,
+        start: u32,
+        node_test: impl Fn(&Node<T>) -> u32,
+        leaf: impl FnMut(u32, u32) -> bool,
+    ) -> bool {
         if self.nodes.is_empty() {
             return false;
         }
         if self.stack_bound <= INLINE_STACK {
             let mut stack = InlineStack::<T, INLINE_STACK>::new();
-            self.any_with(&mut stack, node_test, leaf)
+            self.any_with(start, &mut stack, node_test, leaf)
         } else {
             let mut stack = Vec::with_capacity(self.stack_bound);
-            self.any_with(&mut stack, node_test, leaf)
+            self.any_with(start, &mut stack, node_test, leaf)
         }
     }
 
     #[inline(always)]
     fn any_with(
         &self,
+        start: u32,
         stack: &mut impl Stack<T>,
         node_test: impl Fn(&Node<T>) -> u32,
         mut leaf: impl FnMut(u32, u32) -> bool,
     ) -> bool {
-        let mut current: ChildRef = 0;
+        let mut current: ChildRef = start;
         loop {
             if current & LEAF != 0 {
                 let (first, count) = leaf_range(current);
@@ -880,6 +927,39 @@ mod tests {
                         "{preset:?}: a primitive is missing"
                     );
                 }
+            }
+        }
+    }
+
+    /// Records for each item the nodes from the root down to the node of its leaf.
+    fn paths(bvh: &Bvh<f32>, node: u32, path: &mut Vec<u32>, out: &mut [Vec<u32>]) {
+        path.push(node);
+        for &child in &bvh.nodes()[node as usize].children {
+            if child & LEAF != 0 {
+                let (first, count) = leaf_range(child);
+                for item in first..first + count {
+                    out[item as usize] = path.clone();
+                }
+            } else if child != 0 {
+                paths(bvh, child, path, out);
+            }
+        }
+        path.pop();
+    }
+
+    #[test]
+    fn leaf_ancestors_are_the_nodes_that_many_levels_above_each_items_leaf() {
+        let boxes = scattered_boxes(5000);
+        let (bvh, _): (Bvh<f32>, _) =
+            Bvh::build(&boxes, BuildPreset::default().params(4), |f, c| (f, c));
+        let mut expected = vec![Vec::new(); boxes.len()];
+        paths(&bvh, 0, &mut Vec::new(), &mut expected);
+        assert!(bvh.depth() >= 4);
+        for levels in 0..=bvh.depth() + 1 {
+            let ancestors = bvh.leaf_ancestors(boxes.len(), levels);
+            for (item, path) in expected.iter().enumerate() {
+                let want = path[path.len().saturating_sub(levels + 1)];
+                assert_eq!(ancestors[item], want, "item {item}, {levels} levels up");
             }
         }
     }

@@ -32,6 +32,7 @@ pub mod compare;
 pub mod embree;
 pub mod error;
 pub mod gltf_mesh;
+pub mod hint;
 pub mod image;
 pub mod integrator;
 pub mod job;
@@ -57,6 +58,7 @@ pub mod triangle;
 pub mod verify;
 
 pub use error::{Error, JobError, ManifestError, MeshError};
+pub use hint::AnyHitHint;
 pub use manifest::Manifest;
 pub use ray::Ray;
 pub use scene::{Hit, Scene, SceneGeometry};

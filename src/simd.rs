@@ -12,6 +12,7 @@ use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
 use crate::bvh::{BoxRay, Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::hint::AnyHitHint;
 use crate::ray::Ray;
 use crate::scene::TriangleRay;
 use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit, edge_functions_f64};
@@ -471,12 +472,20 @@ pub unsafe fn closest(
     found.map(|hit| (nearest, hit))
 }
 
-/// Any-hit traversal: whether some triangle has `tmin < t < tmax`.
+/// Any-hit traversal: whether some triangle has `tmin < t < tmax`. The hint's block is
+/// tested first, then the subtree around it (under `hint_roots[block]`), then the whole
+/// tree; the hint then names the triangle found, or nothing.
 ///
 /// # Safety
 /// As for [`closest`].
 #[target_feature(enable = "avx2")]
-pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: &Ray) -> bool {
+pub unsafe fn any(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    hint_roots: &[u32],
+    ray: &Ray,
+    hint: &mut AnyHitHint,
+) -> bool {
     assert!(
         bvh.stack_bound() <= STACK,
         "the scalar path handles deeper trees"
@@ -488,23 +497,69 @@ pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: &Ray) -> bool {
     let ray = TriangleRay::new(ray, ray.tmax);
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
     let r = unsafe { lanes(&ray) };
-    let tmax = ray.tmax;
-    let t_far = _mm256_set1_ps(tmax);
+    let found = 'search: {
+        if let Some(b) = hint.block()
+            && b < blocks.len()
+        {
+            if let Some(slot) = unsafe { block_hit(blocks, b as u32, &r, ray.tmax) } {
+                break 'search Some(slot);
+            }
+            let near = hint_roots[b];
+            if near != 0
+                && let Some(slot) = unsafe { any_below(nodes, blocks, near, &r, ray.tmax) }
+            {
+                break 'search Some(slot);
+            }
+        }
+        unsafe { any_below(nodes, blocks, 0, &r, ray.tmax) }
+    };
+    match found {
+        Some(slot) => hint.remember(slot),
+        None => hint.forget(),
+    }
+    found.is_some()
+}
+
+/// The slot of a triangle of block `b` with `tmin < t < tmax`, if any.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn block_hit(blocks: &[TriangleBlock], b: u32, r: &Lanes, tmax: f32) -> Option<u32> {
+    // SAFETY: AVX2 is enabled in the caller.
+    let mask = unsafe { block_test(&blocks[b as usize], &r.tri, _mm_set1_ps(tmax)) }.0;
+    (mask != 0).then(|| b * BLOCK as u32 + mask.trailing_zeros())
+}
+
+/// Any-hit search of the subtree under node `start`: the slot of the first triangle found.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled; the tree must fit [`STACK`].
+#[inline(always)]
+unsafe fn any_below(
+    nodes: &[Node<f32>],
+    blocks: &[TriangleBlock],
+    start: u32,
+    r: &Lanes,
+    tmax: f32,
+) -> Option<u32> {
+    let t_far = unsafe { _mm256_set1_ps(tmax) };
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
     let mut sp = 0usize;
-    let mut current = 0u32;
+    let mut current = start;
     loop {
         if current & LEAF != 0 {
             let (first, count) = leaf_range(current);
-            let t_tri = _mm_set1_ps(tmax);
             for b in first..first + count {
-                if unsafe { block_test(&blocks[b as usize], &r.tri, t_tri) }.0 != 0 {
-                    return true;
+                // SAFETY: AVX2 is enabled in the caller.
+                if let Some(slot) = unsafe { block_hit(blocks, b, r, tmax) } {
+                    return Some(slot);
                 }
             }
         } else {
             let node = &nodes[current as usize];
-            let (mut mask, _) = unsafe { node_test(node, &r, t_far) };
+            // SAFETY: AVX2 is enabled in the caller.
+            let (mut mask, _) = unsafe { node_test(node, r, t_far) };
             if mask != 0 {
                 let first = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
@@ -518,7 +573,7 @@ pub unsafe fn any(bvh: &Bvh<f32>, blocks: &[TriangleBlock], ray: &Ray) -> bool {
             }
         }
         if sp == 0 {
-            return false;
+            return None;
         }
         sp -= 1;
         // SAFETY: every slot below `sp` was written above.

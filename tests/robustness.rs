@@ -8,9 +8,10 @@ use glam::{DMat4, DVec3};
 use raybatch::bvh::{BuildPreset, Bvh};
 use raybatch::mesh::{Geometry, Instance, MeshFile};
 use raybatch::procedural;
+use raybatch::scene::Tracer;
 use raybatch::sphere::Sphere;
 use raybatch::triangle::{self, ShearedRay};
-use raybatch::{Ray, Scene, SceneGeometry};
+use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry};
 
 fn placed(geometry: &Geometry, transform: DMat4) -> SceneGeometry {
     let mesh = Arc::new(MeshFile {
@@ -91,12 +92,17 @@ fn rays_through_shared_vertices_and_edges_of_closed_meshes_never_leak() {
             let triangles = world.triangles.clone();
             let scene = Scene::build(&world);
             let (mut leaks, mut control_leaks) = (0, 0);
+            // Carried from ray to ray: each is tried first against its neighbour's triangle.
+            let mut hint = AnyHitHint::default();
             for inside in interior {
                 let origin = offset + *inside * scale;
                 for target in shared_targets(&triangles) {
                     let r = ray(origin, target);
                     rays += 1;
-                    if scene.closest_hit(&r).is_none() || !scene.any_hit(&r) {
+                    if scene.closest_hit(&r).is_none()
+                        || !scene.any_hit(&r)
+                        || !scene.any_hit_hinted(&r, &mut hint)
+                    {
                         leaks += 1;
                     }
                     if !moller_trumbore_hits(&triangles, &r) {
@@ -233,6 +239,7 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
             },
             preset,
         );
+        let mut hint = AnyHitHint::default();
         for (r, expected) in rays.iter().zip(&truth) {
             let got = scene.closest_hit(r).map(|h| h.t as f32);
             assert_eq!(got, *expected, "{preset:?}: {r:?}");
@@ -240,6 +247,12 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
                 scene.any_hit(r),
                 expected.is_some(),
                 "{preset:?} any-hit: {r:?}"
+            );
+            // The previous ray's hint: mostly a block and subtree this ray misses.
+            assert_eq!(
+                scene.any_hit_hinted(r, &mut hint),
+                expected.is_some(),
+                "{preset:?} hinted any-hit: {r:?}"
             );
         }
     }
@@ -741,4 +754,62 @@ fn rays_through_shared_vertices_find_the_same_nearest_hit_in_any_visiting_order(
             }
         }
     }
+}
+
+#[test]
+fn an_any_hit_hint_names_the_triangle_that_stopped_the_ray_and_never_changes_an_answer() {
+    // A grid of triangles on z = 1 with nothing behind it. A ray from the origin through a
+    // triangle's centroid hits that triangle alone, and the hint it leaves must name it.
+    // The same line with an interval that excludes the grid, or turned around, must miss
+    // although its hint points right at the triangle: a hint is only where to look first.
+    // The next ray aims at the next triangle, so the hint's block, the subtree around it
+    // and the whole tree each find hits; hints left by a larger scene (slots past this
+    // scene's end) must change nothing either. Both the AVX2 and the scalar paths.
+    let geometry = placed(&procedural::pixel_grid(16), DMat4::IDENTITY);
+    let other = Scene::build(&placed(&procedural::icosphere(4), DMat4::IDENTITY));
+    assert!(other.counts().triangles > 4 * geometry.triangles.len());
+    let mut scene = Scene::build(&geometry);
+    let mut checked = 0;
+    for simd in [true, false] {
+        scene.set_simd(simd);
+        let mut hint = AnyHitHint::default();
+        for (i, t) in geometry.triangles.iter().enumerate() {
+            let centroid = (point(t[0]) + point(t[1]) + point(t[2])) / 3.0;
+            let toward = ray(DVec3::ZERO, centroid);
+            let distance = centroid.length();
+            let mut foreign = AnyHitHint::default();
+            let around = DVec3::new((i as f64).cos(), (i as f64).sin(), 0.3 * (i % 7) as f64);
+            assert!(other.any_hit_hinted(&ray(DVec3::ZERO, around), &mut foreign));
+            for start in [hint, foreign, AnyHitHint::default()] {
+                let mut h = start;
+                assert!(scene.any_hit_hinted(&toward, &mut h), "{i} simd {simd}");
+                let slot = h.triangle_slot().expect("a triangle stopped the ray");
+                assert_eq!(scene.triangle_id(slot) as usize, i, "{i} simd {simd}");
+            }
+            assert!(scene.any_hit_hinted(&toward, &mut hint));
+            let misses = [
+                Ray {
+                    tmax: distance * 0.999,
+                    ..toward
+                },
+                Ray {
+                    tmin: distance * 1.001,
+                    ..toward
+                },
+                Ray {
+                    direction: -toward.direction,
+                    ..toward
+                },
+            ];
+            for r in misses {
+                for start in [hint, foreign] {
+                    let mut h = start;
+                    assert!(!scene.any_hit_hinted(&r, &mut h), "{i} simd {simd}: {r:?}");
+                    assert_eq!(h.triangle_slot(), None, "a miss leaves no hint");
+                    checked += 1;
+                }
+            }
+        }
+    }
+    assert!(checked > 3000, "{checked}");
 }
