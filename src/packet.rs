@@ -13,9 +13,9 @@
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, leaf_range};
+use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
-use crate::simd::{STACK, block_test, distance, pack, push_sorted, tri_lanes};
+use crate::simd::{STACK, block_test, distance, pack, push_sorted, ray_constants, tri_lanes};
 use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
@@ -100,50 +100,74 @@ unsafe fn trace<const ANY: bool>(
     let mut sheared = [MaybeUninit::<ShearedRay>::uninit(); PACKET];
     let mut nearest = [Nearest::before(f32::NEG_INFINITY); PACKET];
     // The packet's ranges over its live rays: origin, reciprocal direction (near and far
-    // planes), smallest tmin, largest tmax.
-    let mut o_range = [(f32::INFINITY, f32::NEG_INFINITY); 3];
-    let mut i_range = [(f32::INFINITY, f32::NEG_INFINITY); 3];
-    let mut f_range = [(f32::INFINITY, f32::NEG_INFINITY); 3];
+    // planes), smallest tmin, largest tmax. Lanes: x, y, z (and a fourth, unused).
+    let (mut o_lo, mut o_hi) = (_mm_set1_ps(f32::INFINITY), _mm_set1_ps(f32::NEG_INFINITY));
+    let (mut i_lo, mut i_hi) = (o_lo, o_hi);
+    let (mut f_lo, mut f_hi) = (o_lo, o_hi);
     let mut tmin_lo = f32::INFINITY;
     let mut packet_tmax = f32::NEG_INFINITY;
-    let widen = |range: &mut (f32, f32), x: f32| {
-        if x < range.0 {
-            range.0 = x;
-        }
-        if x > range.1 {
-            range.1 = x;
-        }
-    };
     let mut octant = [0usize; 3];
+    // Each ray's division results in registers (one 8-lane division, as for a single
+    // ray), written out lane by lane: rereading values stored field by field would stall.
+    let mut values = ([0f32; 4], [0f32; 4], [0f32; 4], 0f32);
     for k in 0..PACKET {
-        let ray = &rays[k.min(n - 1)];
-        let boxes: BoxRay<f32> = ray.boxes();
         let (r, l) = (k / 8, k % 8);
-        for a in 0..3 {
-            origin[a].0[r][l] = boxes.origin[a];
-            inv[a].0[r][l] = boxes.inv_dir[a];
-            inv_far[a].0[r][l] = boxes.inv_dir_far[a];
-        }
-        tmin.0[r][l] = boxes.tmin;
-        if k == 0 {
-            octant = boxes.near;
-        }
         if k < n {
-            if boxes.near != octant {
+            let ray = &rays[k];
+            let near = ray.direction.map(|d| usize::from(d.is_sign_negative()));
+            if k == 0 {
+                octant = near;
+            } else if near != octant {
                 return false;
             }
-            for a in 0..3 {
-                widen(&mut o_range[a], boxes.origin[a]);
-                widen(&mut i_range[a], boxes.inv_dir[a]);
-                widen(&mut f_range[a], boxes.inv_dir_far[a]);
+            // SAFETY: AVX2 is enabled in this function.
+            let c = unsafe { ray_constants(ray.direction) };
+            let [ox, oy, oz] = ray.origin;
+            let o = _mm_setr_ps(ox, oy, oz, 0.0);
+            (o_lo, o_hi) = (_mm_min_ps(o_lo, o), _mm_max_ps(o_hi, o));
+            (i_lo, i_hi) = (_mm_min_ps(i_lo, c.inv), _mm_max_ps(i_hi, c.inv));
+            (f_lo, f_hi) = (_mm_min_ps(f_lo, c.inv_far), _mm_max_ps(f_hi, c.inv_far));
+            let (mut inv_k, mut far_k, mut shear) = ([0f32; 4], [0f32; 4], [0f32; 4]);
+            // SAFETY: each array holds four floats.
+            unsafe {
+                _mm_storeu_ps(inv_k.as_mut_ptr(), c.inv);
+                _mm_storeu_ps(far_k.as_mut_ptr(), c.inv_far);
+                _mm_storeu_ps(shear.as_mut_ptr(), c.shear);
             }
-            tmin_lo = tmin_lo.min(boxes.tmin);
+            values = ([ox, oy, oz, 0.0], inv_k, far_k, ray.tmin);
+            tmin_lo = tmin_lo.min(ray.tmin);
             nearest[k] = Nearest::before(ray.tmax);
             packet_tmax = packet_tmax.max(nearest[k].horizon());
-            sheared[k].write(ray.sheared());
+            let [kx, ky, kz] = c.k;
+            sheared[k].write(ShearedRay {
+                origin: ray.origin,
+                kx,
+                ky,
+                kz,
+                sx: shear[0],
+                sy: shear[1],
+                sz: shear[2],
+            });
         }
+        // Lanes past `n` repeat the last ray.
+        for a in 0..3 {
+            origin[a].0[r][l] = values.0[a];
+            inv[a].0[r][l] = values.1[a];
+            inv_far[a].0[r][l] = values.2[a];
+        }
+        tmin.0[r][l] = values.3;
         t_box.0[r][l] = nearest[k].horizon();
     }
+    let range = |lo: __m128, hi: __m128| {
+        let (mut l, mut h) = ([0f32; 4], [0f32; 4]);
+        // SAFETY: each array holds four floats.
+        unsafe {
+            _mm_storeu_ps(l.as_mut_ptr(), lo);
+            _mm_storeu_ps(h.as_mut_ptr(), hi);
+        }
+        [0, 1, 2].map(|a| (l[a], h[a]))
+    };
+    let (o_range, i_range, f_range) = (range(o_lo, o_hi), range(i_lo, i_hi), range(f_lo, f_hi));
     let nodes = bvh.nodes();
     if nodes.is_empty() {
         return true;
@@ -268,12 +292,17 @@ unsafe fn trace<const ANY: bool>(
                 }
             }
             if improved {
-                packet_tmax = f32::NEG_INFINITY;
-                for near in &nearest[..n] {
-                    if near.horizon() > packet_tmax {
-                        packet_tmax = near.horizon();
-                    }
+                // The largest horizon: `t_box` holds each live ray's, −∞ elsewhere.
+                // SAFETY: rows are 32-byte aligned arrays of eight floats.
+                let row = |r: usize| unsafe { _mm256_load_ps(t_box.0[r].as_ptr()) };
+                let mut widest = row(0);
+                for r in 1..ROWS {
+                    widest = _mm256_max_ps(widest, row(r));
                 }
+                let mut lanes = [0f32; 8];
+                // SAFETY: `lanes` holds eight floats.
+                unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), widest) };
+                packet_tmax = lanes.into_iter().fold(f32::NEG_INFINITY, f32::max);
             }
         }
         // The next entry that some ray may still need.

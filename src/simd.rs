@@ -73,18 +73,25 @@ pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes {
 // cannot be combined): they are called only from the AVX2 traversals, into which they and
 // their intrinsics inline.
 
-/// A ray's constants, computed in registers: the same IEEE divisions and products as
-/// [`ShearedRay::new`](crate::triangle::ShearedRay::new) and [`BoxRay::new`](crate::bvh::BoxRay::new)
-/// (so bit-identical), but as one 8-lane division and permutes instead of six dependent
-/// scalar divisions and indexed reloads: a ray's setup is most of the cost of a ray that
-/// misses the scene.
+/// A ray's division results, in registers: `inv` holds `1/d` (lanes 0–2), `inv_far` the
+/// same times [`EXIT_SCALE`](crate::bvh::Scalar::EXIT_SCALE), `shear` holds
+/// `d[kx]/d[kz], d[ky]/d[kz], 1/d[kz]` (lanes 0–2) for the axes `k = [kx, ky, kz]`.
+pub(crate) struct RayConstants {
+    pub(crate) inv: __m128,
+    pub(crate) inv_far: __m128,
+    pub(crate) shear: __m128,
+    pub(crate) k: [usize; 3],
+}
+
+/// The same IEEE divisions and products as [`ShearedRay::new`](crate::triangle::ShearedRay::new)
+/// and [`BoxRay::new`](crate::bvh::BoxRay::new) (so bit-identical), but as one 8-lane
+/// division and permutes instead of six dependent scalar divisions and indexed reloads:
+/// a ray's setup is most of the cost of a ray that misses the scene.
 ///
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn lanes(ray: &TriangleRay) -> Lanes {
-    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
-    let [dx, dy, dz] = ray.direction;
+pub(crate) unsafe fn ray_constants([dx, dy, dz]: [f32; 3]) -> RayConstants {
     let (ax, ay, az) = (dx.abs(), dy.abs(), dz.abs());
     // As `ShearedRay::new` chooses them.
     let kz = if ax > ay {
@@ -96,7 +103,6 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
     };
     let kx = (kz + 1) % 3;
     let ky = (kx + 1) % 3;
-    let negative = [dx, dy, dz].map(|d| usize::from(d.is_sign_negative()));
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
         let one = _mm_set1_ps(1.0);
@@ -108,8 +114,31 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
         let denominator = _mm256_set_m128(d, _mm_blend_ps::<0b1000>(d_kz, one));
         let quotient = _mm256_div_ps(numerator, denominator);
         let inv = _mm256_extractf128_ps::<1>(quotient);
-        let inv_far = _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE));
-        let shear = _mm256_castps256_ps128(quotient);
+        RayConstants {
+            inv,
+            inv_far: _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE)),
+            shear: _mm256_castps256_ps128(quotient),
+            k: [kx, ky, kz],
+        }
+    }
+}
+
+/// A ray's constants for the node and block tests, broadcast from [`ray_constants`].
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn lanes(ray: &TriangleRay) -> Lanes {
+    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
+    let negative = ray.direction.map(|d| usize::from(d.is_sign_negative()));
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        let RayConstants {
+            inv,
+            inv_far,
+            shear,
+            k: [kx, ky, kz],
+        } = ray_constants(ray.direction);
         // Macros, not closures: a closure would not inherit the caller's AVX2.
         macro_rules! splat4 {
             ($v:expr, $lane:literal) => {
