@@ -8,7 +8,7 @@ use glam::{DMat4, DVec3};
 use raybatch::camera::{Camera, look_at_frame};
 use raybatch::manifest::CameraDesc;
 use raybatch::mesh::{Instance, MeshFile};
-use raybatch::{Ray, Scene, SceneGeometry, procedural};
+use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry, procedural};
 use std::sync::Arc;
 
 fn torus_scene(rings: u32, sides: u32) -> Scene {
@@ -50,6 +50,14 @@ fn trace(c: &mut Criterion) {
     });
     group.bench_function("any-hit", |b| {
         b.iter(|| rays.iter().filter(|r| scene.any_hit(r)).count())
+    });
+    group.bench_function("any-hit-hinted", |b| {
+        b.iter(|| {
+            let mut hint = AnyHitHint::default();
+            rays.iter()
+                .filter(|r| scene.any_hit_hinted(r, &mut hint))
+                .count()
+        })
     });
     group.finish();
 }
