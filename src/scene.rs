@@ -417,8 +417,9 @@ impl Scene {
         assert_eq!(rays.len(), out.len());
         let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
+            let mut hint = AnyHitHint::default();
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
-                *out = analytic && self.any_analytic(ray);
+                *out = analytic && self.any_analytic(ray, &mut hint);
             }
             if self.triangles.bvh.is_empty() {
                 continue;
@@ -448,7 +449,6 @@ impl Scene {
                     continue;
                 }
             }
-            let mut hint = AnyHitHint::default();
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
                 *out = *out || self.any_triangle(ray, &mut hint);
             }
@@ -501,12 +501,13 @@ impl Scene {
     /// is the same with any hint.
     #[inline]
     pub fn any_hit_hinted(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        self.any_analytic(ray) || (!self.triangles.bvh.is_empty() && self.any_triangle(ray, hint))
+        self.any_analytic(ray, hint)
+            || (!self.triangles.bvh.is_empty() && self.any_triangle(ray, hint))
     }
 
-    /// Whether a plane or a sphere is hit.
+    /// Whether a plane or a sphere is hit, the hint's sphere tested first.
     #[inline(always)]
-    fn any_analytic(&self, ray: &Ray) -> bool {
+    fn any_analytic(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         if self
             .planes
             .iter()
@@ -517,17 +518,29 @@ impl Scene {
         if self.sphere_bvh.is_empty() {
             return false;
         }
+        let hits = |i: usize| self.spheres[i].intersect(ray, ray.tmax).is_some();
+        if let Some(i) = hint.sphere()
+            && i < self.spheres.len()
+            && hits(i)
+        {
+            return true;
+        }
         let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+        let mut found = None;
         let leaf = |first, count| {
-            (first..first + count)
-                .any(|i| self.spheres[i as usize].intersect(ray, ray.tmax).is_some())
+            found = (first..first + count).find(|&i| hits(i as usize));
+            found.is_some()
         };
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: `avx2` is set only when the CPU has it.
-            return unsafe { crate::simd::wide_any(&self.sphere_bvh, &box_ray, ray.tmax, leaf) };
+            unsafe { crate::simd::wide_any(&self.sphere_bvh, &box_ray, ray.tmax, leaf) };
+            hint.remember_sphere(found);
+            return found.is_some();
         }
-        self.sphere_bvh.any(&box_ray, ray.tmax, leaf)
+        self.sphere_bvh.any(&box_ray, ray.tmax, leaf);
+        hint.remember_sphere(found);
+        found.is_some()
     }
 
     /// Whether a triangle has `ray.tmin < t < ray.tmax` for the ray rounded to float32,
@@ -579,10 +592,7 @@ impl Scene {
             }
         }
         let found = found.or_else(|| search(0));
-        match found {
-            Some(slot) => hint.remember(slot),
-            None => hint.forget(),
-        }
+        hint.remember_triangle(found);
         found.is_some()
     }
 

@@ -542,10 +542,7 @@ pub unsafe fn any(
         }
         unsafe { any_below(nodes, blocks, 0, &r, ray.tmax) }
     };
-    match found {
-        Some(slot) => hint.remember(slot),
-        None => hint.forget(),
-    }
+    hint.remember_triangle(found);
     found.is_some()
 }
 

@@ -271,7 +271,9 @@ fn ten_thousand_spheres_trace_like_brute_force() {
         spheres: spheres.clone(),
         ..SceneGeometry::default()
     });
+    let brute_any = |r: &Ray| spheres.iter().any(|s| s.intersect(r, r.tmax).is_some());
     let mut hits = 0;
+    let mut hint = AnyHitHint::default();
     for _ in 0..2000 {
         let r = ray(numbers.vector(60.0), numbers.vector(20.0));
         let mut best: Option<(f64, u32)> = None;
@@ -283,7 +285,25 @@ fn ten_thousand_spheres_trace_like_brute_force() {
         let got = scene.closest_hit(&r).map(|h| h.t);
         assert_eq!(got, best.map(|b| b.0));
         assert_eq!(scene.any_hit(&r), best.is_some());
+        assert_eq!(scene.any_hit_hinted(&r, &mut hint), best.is_some());
         hits += usize::from(best.is_some());
+        // The hint now names a sphere this ray hits: the same ray stopped short of every
+        // hit, or started past the nearest, must still get the brute-force answer.
+        if let Some((t, _)) = best {
+            for part in [
+                Ray {
+                    tmax: t * 0.999,
+                    ..r
+                },
+                Ray {
+                    tmin: t * 1.001,
+                    ..r
+                },
+            ] {
+                let mut h = hint;
+                assert_eq!(scene.any_hit_hinted(&part, &mut h), brute_any(&part));
+            }
+        }
     }
     assert!(hits > 200, "{hits}");
 }
