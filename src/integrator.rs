@@ -41,13 +41,23 @@ pub struct HitIntegrator {
     pub background: Rgb,
 }
 
+impl HitIntegrator {
+    fn of(&self, hit: bool) -> Rgb {
+        if hit { [1.0; 3] } else { self.background }
+    }
+}
+
 impl Integrator for HitIntegrator {
     #[inline]
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
-        if scene.any_hit(ray) {
-            [1.0; 3]
-        } else {
-            self.background
+        self.of(scene.any_hit(ray))
+    }
+
+    fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
+        let mut hits = vec![false; rays.len()];
+        scene.any_hits(rays, &mut hits);
+        for (out, hit) in out.iter_mut().zip(hits) {
+            *out = self.of(hit);
         }
     }
 }

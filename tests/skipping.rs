@@ -49,21 +49,23 @@ fn a_scene_without_meshes_builds_no_triangle_tree_and_one_without_spheres_no_sph
     assert_eq!(counts.accel_bytes, mesh_only.triangle_tree().memory_bytes());
 }
 
-/// A tracer that counts what the render loop asks of the scene it wraps.
+/// A tracer that counts what the render loop asks of the scene it wraps: rays asked
+/// about in batches, rays asked about one by one, normals.
 struct Counting<'a> {
     scene: &'a Scene,
     closest: AtomicUsize,
     any: AtomicUsize,
+    single: AtomicUsize,
     normals: AtomicUsize,
 }
 
 impl Tracer for Counting<'_> {
     fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
-        self.closest.fetch_add(1, Relaxed);
+        self.single.fetch_add(1, Relaxed);
         self.scene.closest_hit(ray)
     }
     fn any_hit(&self, ray: &Ray) -> bool {
-        self.any.fetch_add(1, Relaxed);
+        self.single.fetch_add(1, Relaxed);
         self.scene.any_hit(ray)
     }
     fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
@@ -87,7 +89,7 @@ impl Tracer for Counting<'_> {
 }
 
 #[test]
-fn hit_asks_only_whether_anything_is_hit_and_only_normal_computes_normals() {
+fn hit_asks_only_whether_anything_is_hit_all_ask_in_batches_and_only_normal_computes_normals() {
     let dir = Dir::new();
     dir.write("tetra.obj", TETRAHEDRON);
     let base = r#""image": {"width": 16, "height": 12}, "sampler": {"type": "stratified", "spp": 2},
@@ -107,11 +109,14 @@ fn hit_asks_only_whether_anything_is_hit_and_only_normal_computes_normals() {
             scene: &scene,
             closest: AtomicUsize::new(0),
             any: AtomicUsize::new(0),
+            single: AtomicUsize::new(0),
             normals: AtomicUsize::new(0),
         };
         raybatch::render::render(&counting, &manifest, &|_| {}).unwrap();
         assert_eq!(counting.closest.into_inner(), closest, "{integrator}");
         assert_eq!(counting.any.into_inner(), any, "{integrator}");
+        // Every camera ray is asked about in batches, which the tracer traces as packets.
+        assert_eq!(counting.single.into_inner(), 0, "{integrator}");
         assert_eq!(counting.normals.into_inner() > 0, normals, "{integrator}");
     }
 }
