@@ -311,7 +311,13 @@ impl Scene {
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
     #[inline]
     pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
-        let mut best = self.closest_analytic(ray);
+        // Skipped, not run empty, when there are no planes or spheres: its `None` would
+        // go through memory and stall the triangle search that reads it back.
+        let mut best = if self.planes.is_empty() && self.sphere_bvh.is_empty() {
+            None
+        } else {
+            self.closest_analytic(ray)
+        };
         if !self.triangles.bvh.is_empty()
             && let Some((nearest, hit)) = self.nearest_triangle(ray, best.map_or(ray.tmax, |h| h.t))
         {
