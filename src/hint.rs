@@ -2,12 +2,11 @@
 //! any-hit query, tested first by the next one.
 //!
 //! Neighbouring rays (the pixels of a tile, shadow rays from neighbouring points toward
-//! one light) are mostly stopped by the same few triangles: on the camera rays of the
-//! scanned benchmark meshes seven hitting rays in ten hit the block of four triangles that
-//! stopped the ray before them. A hinted query tests that block first, then the subtree
-//! around it ([`crate::scene::HINT_LEVELS`] above its leaf), and only then the whole tree;
-//! most hitting rays end after one block test or a short search instead of a descent from
-//! the root. A query that hits no triangle clears the hint, so a run of misses pays
+//! one light) are mostly stopped by the same few triangles, most often by the block of
+//! four triangles that stopped the ray before them. A hinted query tests that block
+//! first, then the subtree around it ([`crate::scene::HINT_LEVELS`] above its leaf), and
+//! only then the whole tree; most hitting rays end after one block test or a short search
+//! instead of a descent from the root. A query that hits no triangle clears the hint, so a run of misses pays
 //! nothing for it. Spheres likewise: the sphere that stopped the previous ray is tested
 //! before the spheres' tree.
 //!

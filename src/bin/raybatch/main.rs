@@ -42,9 +42,9 @@ fn main() -> ExitCode {
 /// job's phases (a mesh's read buffers, the tree build's temporaries, the image) and the
 /// jobs of a batch then reuse memory rather than fault it in anew, and page faults are
 /// dear here. Measured: a full-HD job of a 124k-triangle mesh went from 19.7k to 12.3k
-/// faults (build 45 -> 35 ms, load 23 -> 18 ms) with large blocks on the heap; building
-/// a million-triangle tree again in one process went from 250 to 160 ms once no block
-/// was mapped on its own.
+/// faults (build 45 -> 35 ms, load 23 -> 18 ms) with large blocks on the heap, and the
+/// million-triangle torus's build in `raybatch bench` from 0.25 to 0.17 s once no block
+/// was mapped on its own (BENCHMARKS.md).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn keep_freed_memory() {
     // SAFETY: `mallopt` only sets allocator parameters; no other thread exists yet. A
