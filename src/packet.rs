@@ -208,6 +208,14 @@ unsafe fn trace<const ANY: bool>(
                     let i = m.trailing_zeros() as usize;
                     m &= m - 1;
                     let child = node.children[i];
+                    // A packet visits nearly every child it enters, so its memory is asked
+                    // for now and arrives while the nearer children are traced.
+                    if child & LEAF == 0 {
+                        prefetch(nodes.as_ptr().wrapping_add(child as usize), 1);
+                    } else {
+                        let (first, count) = leaf_range(child);
+                        prefetch(blocks.as_ptr().wrapping_add(first as usize), count as usize);
+                    }
                     let reference = if child & LEAF == 0 {
                         child
                     } else {
@@ -325,6 +333,19 @@ unsafe fn trace<const ANY: bool>(
                 break;
             }
         }
+    }
+}
+
+/// Asks the cache for every line of the `count` items at `first`, without waiting for
+/// them. (A prefetch never faults, so the address need not even be valid.)
+#[inline(always)]
+fn prefetch<T>(first: *const T, count: usize) {
+    const LINE: usize = 64;
+    let start = first as usize;
+    let end = start.wrapping_add(count * std::mem::size_of::<T>());
+    for line in (start & !(LINE - 1)..end).step_by(LINE) {
+        // SAFETY: a prefetch never faults, whatever the address; SSE is part of x86-64.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
     }
 }
 
