@@ -27,11 +27,20 @@ pub trait Integrator: Sync {
     }
 }
 
-/// The closest hits of a batch of rays, in a buffer sized for one render packet.
-fn closest_hits<T: Tracer>(scene: &T, rays: &[Ray]) -> Vec<Option<Hit>> {
-    let mut hits = vec![None; rays.len()];
-    scene.closest_hits(rays, &mut hits);
-    hits
+/// Rays asked of the tracer at once: one render packet. The batch functions below work in
+/// runs of this many, with buffers on the stack: a heap buffer per packet would take the
+/// allocator's lock tens of thousands of times per image.
+const RUN: usize = crate::packet::PACKET;
+
+/// The closest hits of a batch of rays, `f(i, hit)` for ray `i`.
+fn closest_hits<T: Tracer>(scene: &T, rays: &[Ray], mut f: impl FnMut(usize, Option<Hit>)) {
+    for (run, rays) in rays.chunks(RUN).enumerate() {
+        let mut hits = [None; RUN];
+        scene.closest_hits(rays, &mut hits[..rays.len()]);
+        for (i, hit) in hits[..rays.len()].iter().enumerate() {
+            f(run * RUN + i, *hit);
+        }
+    }
 }
 
 /// `hit`: `[1, 1, 1]` where the ray hits anything, else the background. An any-hit
@@ -54,10 +63,12 @@ impl Integrator for HitIntegrator {
     }
 
     fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
-        let mut hits = vec![false; rays.len()];
-        scene.any_hits(rays, &mut hits);
-        for (out, hit) in out.iter_mut().zip(hits) {
-            *out = self.of(hit);
+        for (rays, out) in rays.chunks(RUN).zip(out.chunks_mut(RUN)) {
+            let mut hits = [false; RUN];
+            scene.any_hits(rays, &mut hits[..rays.len()]);
+            for (out, &hit) in out.iter_mut().zip(&hits) {
+                *out = self.of(hit);
+            }
         }
     }
 }
@@ -85,9 +96,7 @@ impl Integrator for DepthIntegrator {
     }
 
     fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
-        for (out, hit) in out.iter_mut().zip(closest_hits(scene, rays)) {
-            *out = self.of(hit);
-        }
+        closest_hits(scene, rays, |i, hit| out[i] = self.of(hit));
     }
 }
 
@@ -117,8 +126,6 @@ impl Integrator for NormalIntegrator {
     }
 
     fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
-        for ((out, hit), ray) in out.iter_mut().zip(closest_hits(scene, rays)).zip(rays) {
-            *out = self.of(scene, ray, hit);
-        }
+        closest_hits(scene, rays, |i, hit| out[i] = self.of(scene, &rays[i], hit));
     }
 }

@@ -3,6 +3,7 @@
 //! A pixel's value depends only on the scene and its samples, never on the thread that
 //! computed it, so the bytes do not depend on the thread count.
 
+use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::camera::Camera;
@@ -10,6 +11,7 @@ use crate::error::ManifestError;
 use crate::image::Image;
 use crate::integrator::{DepthIntegrator, HitIntegrator, Integrator, NormalIntegrator};
 use crate::manifest::{IntegratorDesc, Manifest};
+use crate::ray::Ray;
 use crate::sampler::Sampler;
 use crate::scene::Tracer;
 
@@ -126,25 +128,39 @@ pub fn render_with<T: Tracer, I: Integrator>(
     const GROUP: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
     image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
         let rows = band.rows();
-        let mut rays = Vec::with_capacity(GROUP);
-        let mut values = vec![[0.0f64; 3]; GROUP];
+        // One group's buffers, reused by every group (each ray is written before use):
+        // nothing is allocated per group.
+        let mut pixels = [(0u32, 0u32); GROUP];
+        let unused = Ray {
+            origin: DVec3::ZERO,
+            direction: DVec3::Z,
+            tmin: 0.0,
+            tmax: 0.0,
+        };
+        let mut rays = [unused; GROUP];
+        let mut values = [[0.0f64; 3]; GROUP];
         for x0 in (0..width).step_by(PACKET_SIDE as usize) {
             for dy0 in (0..rows).step_by(PACKET_SIDE as usize) {
-                let pixels: Vec<(u32, u32)> = (dy0..(dy0 + PACKET_SIDE).min(rows))
-                    .flat_map(|dy| (x0..(x0 + PACKET_SIDE).min(width)).map(move |x| (x, dy)))
-                    .collect();
-                let mut sums = vec![[0.0f64; 3]; pixels.len()];
+                let mut n = 0;
+                for dy in dy0..(dy0 + PACKET_SIDE).min(rows) {
+                    for x in x0..(x0 + PACKET_SIDE).min(width) {
+                        pixels[n] = (x, dy);
+                        n += 1;
+                    }
+                }
+                let mut sums = [[0.0f64; 3]; GROUP];
                 for s in 0..spp {
-                    rays.clear();
-                    rays.extend(pixels.iter().map(|&(x, dy)| view.ray(x, band.y0 + dy, s)));
-                    integrator.values(scene, &rays, &mut values[..rays.len()]);
-                    for (sum, value) in sums.iter_mut().zip(&values) {
+                    for (ray, &(x, dy)) in rays.iter_mut().zip(&pixels[..n]) {
+                        *ray = view.ray(x, band.y0 + dy, s);
+                    }
+                    integrator.values(scene, &rays[..n], &mut values[..n]);
+                    for (sum, value) in sums.iter_mut().zip(&values[..n]) {
                         for c in 0..3 {
                             sum[c] += value[c];
                         }
                     }
                 }
-                for (&(x, dy), sum) in pixels.iter().zip(&sums) {
+                for (&(x, dy), sum) in pixels[..n].iter().zip(&sums) {
                     band.set(x, dy, sum.map(|c| c / f64::from(spp)));
                 }
             }
