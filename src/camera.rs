@@ -104,9 +104,26 @@ impl Camera {
     /// lens centre.
     #[inline]
     pub fn ray(&self, x: u32, y: u32, sx: f64, sy: f64, lens: (f64, f64)) -> Ray {
+        self.ray_at(self.screen_u(x, sx), self.screen_v(y, sy), lens)
+    }
+
+    /// The horizontal screen coordinate `u` of offset `sx` in column `x`.
+    #[inline]
+    pub fn screen_u(&self, x: u32, sx: f64) -> f64 {
         let (w, h) = (self.width, self.height);
-        let u = (w / h) * (2.0 * (f64::from(x) + sx) / w - 1.0);
-        let v = 1.0 - 2.0 * (f64::from(y) + sy) / h;
+        (w / h) * (2.0 * (f64::from(x) + sx) / w - 1.0)
+    }
+
+    /// The vertical screen coordinate `v` of offset `sy` in row `y`.
+    #[inline]
+    pub fn screen_v(&self, y: u32, sy: f64) -> f64 {
+        1.0 - 2.0 * (f64::from(y) + sy) / self.height
+    }
+
+    /// The ray through screen coordinates `(u, v)` ([`Camera::screen_u`],
+    /// [`Camera::screen_v`]); `lens` as for [`Camera::ray`].
+    #[inline]
+    pub fn ray_at(&self, u: f64, v: f64, lens: (f64, f64)) -> Ray {
         let f = &self.frame;
         let direction = (u * f.right + v * f.up + f.forward).normalize();
         let mut ray = Ray {

@@ -19,34 +19,57 @@ use crate::scene::Tracer;
 pub const TILE: u32 = 16;
 
 /// Everything besides the scene that decides a pixel.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct View {
     pub camera: Camera,
     pub sampler: Sampler,
     pub tmin: f64,
     pub tmax: f64,
+    /// With a fixed pixel offset (the `center` sampler), each column's `u` and each row's
+    /// `v` (see [`Camera::screen_u`]), computed once instead of twice per pixel: the same
+    /// values, and two divisions fewer per camera ray.
+    screen: Option<(Vec<f64>, Vec<f64>)>,
 }
 
 impl View {
     pub fn new(manifest: &Manifest) -> View {
+        let camera = Camera::new(&manifest.camera, manifest.width, manifest.height);
+        let sampler = Sampler::new(&manifest.sampler);
+        let screen = sampler.fixed_offset().map(|(sx, sy)| {
+            (
+                (0..manifest.width)
+                    .map(|x| camera.screen_u(x, sx))
+                    .collect(),
+                (0..manifest.height)
+                    .map(|y| camera.screen_v(y, sy))
+                    .collect(),
+            )
+        });
         View {
-            camera: Camera::new(&manifest.camera, manifest.width, manifest.height),
-            sampler: Sampler::new(&manifest.sampler),
+            camera,
+            sampler,
             tmin: manifest.tmin,
             tmax: manifest.tmax,
+            screen,
         }
     }
 
     /// The camera ray of sample `s` of pixel `(x, y)`, with the manifest's `tmin`/`tmax`.
     #[inline]
     pub fn ray(&self, x: u32, y: u32, s: u32) -> crate::Ray {
-        let (sx, sy) = self.sampler.pixel_offset(x, y, s);
+        let (u, v) = match &self.screen {
+            Some((columns, rows)) => (columns[x as usize], rows[y as usize]),
+            None => {
+                let (sx, sy) = self.sampler.pixel_offset(x, y, s);
+                (self.camera.screen_u(x, sx), self.camera.screen_v(y, sy))
+            }
+        };
         let lens = if self.camera.has_lens() {
             self.sampler.lens(x, y, s)
         } else {
             (0.5, 0.5)
         };
-        let mut ray = self.camera.ray(x, y, sx, sy, lens);
+        let mut ray = self.camera.ray_at(u, v, lens);
         ray.tmin = self.tmin;
         ray.tmax = self.tmax;
         ray

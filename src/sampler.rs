@@ -44,6 +44,14 @@ impl Sampler {
         self.spp
     }
 
+    /// The offset every sample of every pixel takes, if it is fixed (`center`).
+    pub fn fixed_offset(&self) -> Option<(f64, f64)> {
+        match self.kind {
+            SamplerKind::Center => Some((0.5, 0.5)),
+            SamplerKind::Independent | SamplerKind::Stratified => None,
+        }
+    }
+
     /// The offset of sample `s` within pixel `(x, y)`, in `[0, 1)²`.
     #[inline]
     pub fn pixel_offset(&self, x: u32, y: u32, s: u32) -> (f64, f64) {
