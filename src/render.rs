@@ -55,7 +55,7 @@ impl View {
     }
 
     /// The camera ray of sample `s` of pixel `(x, y)`, with the manifest's `tmin`/`tmax`.
-    #[inline]
+    #[inline(always)]
     pub fn ray(&self, x: u32, y: u32, s: u32) -> crate::Ray {
         let (u, v) = match &self.screen {
             Some((columns, rows)) => (columns[x as usize], rows[y as usize]),
@@ -184,7 +184,13 @@ pub fn render_with<T: Tracer, I: Integrator>(
                     }
                 }
                 for (&(x, dy), sum) in pixels[..n].iter().zip(&sums) {
-                    band.set(x, dy, sum.map(|c| c / f64::from(spp)));
+                    // `c / 1.0` is `c`: one sample skips three divisions per pixel.
+                    let mean = if spp == 1 {
+                        *sum
+                    } else {
+                        sum.map(|c| c / f64::from(spp))
+                    };
+                    band.set(x, dy, mean);
                 }
             }
         }
