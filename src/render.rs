@@ -55,6 +55,8 @@ impl View {
     }
 
     /// The camera ray of sample `s` of pixel `(x, y)`, with the manifest's `tmin`/`tmax`.
+    // Always inlined: returned through memory, the ray was reread whole from fields
+    // stored one by one, and every camera ray stalled on store forwarding.
     #[inline(always)]
     pub fn ray(&self, x: u32, y: u32, s: u32) -> crate::Ray {
         let (u, v) = match &self.screen {
