@@ -1,7 +1,9 @@
 //! Benchmarks users can run (`raybatch bench`): trace throughput, build and load times,
 //! memory, and whole jobs, on scenes made here (and the scanned models when given). With
 //! the `embree` feature the very same rays go through the Embree reference (robust scene,
-//! `rtcIntersect1`/`rtcOccluded1`) in the same run, and ratios are reported.
+//! `rtcIntersect1`/`rtcOccluded1`) in the same run, and ratios are reported; the torus's
+//! whole job (read, build, render, write) also runs through the Embree backend, in turns
+//! with ours.
 //!
 //! Every figure is the median of several runs. Timing is never asserted in tests; the
 //! figures go to BENCHMARKS.md with the command that produced them.
@@ -15,7 +17,7 @@ use serde_json::json;
 
 use crate::camera::{Camera, look_at_frame};
 use crate::hint::AnyHitHint;
-use crate::job::{Batch, JobOptions};
+use crate::job::{Backend, Batch, JobOptions};
 use crate::manifest::CameraDesc;
 use crate::ray::Ray;
 use crate::scene::{Scene, SceneGeometry, Tracer};
@@ -85,6 +87,8 @@ pub struct JobFigures {
     pub name: String,
     pub jobs: usize,
     pub seconds: f64,
+    /// The same jobs through the Embree backend, when asked for and compared.
+    pub embree_seconds: Option<f64>,
 }
 
 /// Everything one run measured.
@@ -118,6 +122,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
     };
     // Each scene is loaded just before it is traced, so its memory figures are its own.
     let mut scenes: Vec<Box<dyn FnOnce() -> Result<TraceScene, String>>> = Vec::new();
+    let mut torus_file = None;
 
     if wanted("torus") {
         let (rings, sides) = if options.quick {
@@ -130,6 +135,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         let text =
             crate::procedural::to_obj(&crate::procedural::torus(1.0, 0.35, rings, sides), "");
         std::fs::write(&file, text).map_err(|e| format!("{}: {e}", file.display()))?;
+        torus_file = Some(file.clone());
         scenes.push(Box::new(move || mesh_scene(&name, &file, (width, height))));
     }
     if let Some(models) = &options.models {
@@ -179,6 +185,9 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
     }
     if wanted("canonical") {
         jobs.push(canonical_job(temp)?);
+    }
+    if let Some(file) = torus_file {
+        jobs.push(mesh_job(temp, &file, (width, height), options.embree)?);
     }
     Ok(BenchReport {
         scenes: figures,
@@ -474,6 +483,61 @@ fn batch_of_small_jobs(temp: &Path, count: usize) -> Result<JobFigures, String> 
         name: format!("batch of {count} small jobs (160x120, one shared 82k-triangle mesh)"),
         jobs: count,
         seconds,
+        embree_seconds: None,
+    })
+}
+
+/// One `depth` job of the mesh in `file`, from reading the manifest to writing the image,
+/// each run in a fresh batch (so the mesh is read and its tree built every time); with
+/// `embree`, the same job through the Embree backend in turns with ours.
+fn mesh_job(
+    temp: &Path,
+    file: &Path,
+    (width, height): (u32, u32),
+    embree: bool,
+) -> Result<JobFigures, String> {
+    let manifest = temp.join("mesh-job.json");
+    let text = serde_json::json!({
+        "image": {"width": width, "height": height},
+        "camera": {"look_from": [0, 2, 2.5], "look_at": [0, 0, 0], "vfov": 45},
+        "integrator": {"type": "depth"},
+        "meshes": [{"file": file}],
+        "output": "mesh-job.pfm",
+    });
+    std::fs::write(&manifest, text.to_string()).map_err(|e| e.to_string())?;
+    let run = |backend: Backend| {
+        let report = Batch::new(JobOptions {
+            backend,
+            ..JobOptions::default()
+        })
+        .run(&manifest, &|_| {});
+        assert!(report.ok(), "{:?}", report.error);
+    };
+    let backends: &[Backend] = if embree {
+        &[Backend::Raybatch, Backend::Embree]
+    } else {
+        &[Backend::Raybatch]
+    };
+    // A warm-up of each, then runs in turns, so that drift hits both alike.
+    let mut times = vec![Vec::new(); backends.len()];
+    for round in 0..6 {
+        for (b, &backend) in backends.iter().enumerate() {
+            let start = Instant::now();
+            run(backend);
+            if round > 0 {
+                times[b].push(start.elapsed().as_secs_f64());
+            }
+        }
+    }
+    let mut times = times.into_iter().map(median_of);
+    let name = file
+        .file_stem()
+        .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
+    Ok(JobFigures {
+        name: format!("{name} job ({width}x{height} depth, load + build + render + write)"),
+        jobs: 1,
+        seconds: times.next().unwrap_or_default(),
+        embree_seconds: times.next(),
     })
 }
 
@@ -492,6 +556,7 @@ fn canonical_job(temp: &Path) -> Result<JobFigures, String> {
         name: "canonical job (640x480, load + build + render + write)".to_string(),
         jobs: 1,
         seconds,
+        embree_seconds: None,
     })
 }
 
@@ -551,6 +616,7 @@ impl BenchReport {
             })).collect::<Vec<_>>(),
             "jobs": self.jobs.iter().map(|j| json!({
                 "name": j.name, "jobs": j.jobs, "seconds": j.seconds,
+                "embree_seconds": j.embree_seconds,
             })).collect::<Vec<_>>(),
         })
     }
@@ -645,12 +711,18 @@ impl BenchReport {
             );
         }
         let _ = writeln!(out);
-        let _ = writeln!(out, "| job | jobs | seconds | per job ms |");
-        let _ = writeln!(out, "|---|---:|---:|---:|");
+        let _ = writeln!(
+            out,
+            "| job | jobs | seconds | per job ms | Embree backend seconds | Embree / raybatch |"
+        );
+        let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
         for j in &self.jobs {
+            let (embree, ratio) = j.embree_seconds.map_or(("-".into(), "-".into()), |e| {
+                (format!("{e:.3}"), format!("{:.2}x", e / j.seconds))
+            });
             let _ = writeln!(
                 out,
-                "| {} | {} | {:.3} | {:.2} |",
+                "| {} | {} | {:.3} | {:.2} | {embree} | {ratio} |",
                 j.name,
                 j.jobs,
                 j.seconds,
