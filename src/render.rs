@@ -18,13 +18,14 @@ use crate::scene::Tracer;
 /// Side of the square tiles, in pixels; also the height of a parallel band.
 pub const TILE: u32 = 16;
 
-/// Everything besides the scene that decides a pixel.
+/// Everything besides the scene that decides a pixel. Made from a manifest, and not
+/// changed after: the tables below follow from the camera and sampler.
 #[derive(Debug, Clone)]
 pub struct View {
-    pub camera: Camera,
-    pub sampler: Sampler,
-    pub tmin: f64,
-    pub tmax: f64,
+    camera: Camera,
+    sampler: Sampler,
+    tmin: f64,
+    tmax: f64,
     /// With a fixed pixel offset (the `center` sampler), each column's `u` and each row's
     /// `v` (see [`Camera::screen_u`]), computed once instead of twice per pixel: the same
     /// values, and two divisions fewer per camera ray.
@@ -52,6 +53,15 @@ impl View {
             tmax: manifest.tmax,
             screen,
         }
+    }
+
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Samples per pixel.
+    pub fn spp(&self) -> u32 {
+        self.sampler.spp()
     }
 
     /// The camera ray of sample `s` of pixel `(x, y)`, with the manifest's `tmin`/`tmax`.
@@ -149,7 +159,7 @@ pub fn render_with<T: Tracer, I: Integrator>(
     progress: &(dyn Fn(u64) + Sync),
 ) {
     let width = image.width;
-    let spp = view.sampler.spp();
+    let spp = view.spp();
     const GROUP: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
     image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
         let rows = band.rows();
