@@ -332,7 +332,11 @@ fn bad_mesh_files_are_refused_with_the_file_and_place() {
         "{missing}"
     );
     let far = lines.iter().find(|l| l.contains("far.json")).unwrap();
-    assert!(far.contains("out of range"), "{far}");
+    // The first vertex out of range, in the file's order, is the one named.
+    assert!(
+        far.contains("out of range") && far.contains("vertex [0.0, 0.0, 3.0]"),
+        "{far}"
+    );
     assert!(
         dir.files().iter().all(|f| !f.ends_with(".ppm")),
         "{:?}",
