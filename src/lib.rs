@@ -31,6 +31,7 @@ pub mod compare;
 #[cfg(feature = "embree")]
 pub mod embree;
 pub mod error;
+pub mod file_bytes;
 pub mod gltf_mesh;
 pub mod hint;
 pub mod image;

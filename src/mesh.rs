@@ -88,7 +88,7 @@ pub fn load(path: &Path) -> Result<MeshFile, MeshError> {
     let format = MeshFormat::from_path(path).ok_or_else(|| MeshError::Format {
         path: path.to_path_buf(),
     })?;
-    let bytes = std::fs::read(path).map_err(|source| MeshError::Read {
+    let bytes = crate::file_bytes::FileBytes::open(path).map_err(|source| MeshError::Read {
         path: path.to_path_buf(),
         source,
     })?;
