@@ -586,7 +586,8 @@ mod tests {
             same(&word);
         }
         for _ in 0..20_000 {
-            // `(2a + 1) / 2^j` with a 24-bit `a`: halfway between two `f32`s.
+            // `(2a + 1) · 2^s` or `(2a + 1) / 2^j` with a 24-bit `a`: halfway between two
+            // `f32`s.
             let odd = 2 * ((1 << 23) + next(1 << 23)) + 1;
             let j = next(13) as u32;
             let word = if next(2) == 0 {
