@@ -395,8 +395,7 @@ fn load_buffers(
                 .ok_or((
                     place.clone(),
                     "refers to a GLB binary chunk that is missing".to_string(),
-                ))?
-                .to_vec(),
+                ))?,
             gltf::buffer::Source::Uri(uri) => {
                 read_uri(uri, folder).map_err(|m| (place.clone(), m))?
             }
