@@ -390,12 +390,10 @@ fn load_buffers(
     for buffer in document.buffers() {
         let place = format!("buffers[{}]", buffer.index());
         let data = match buffer.source() {
-            gltf::buffer::Source::Bin => blob
-                .take()
-                .ok_or((
-                    place.clone(),
-                    "refers to a GLB binary chunk that is missing".to_string(),
-                ))?,
+            gltf::buffer::Source::Bin => blob.take().ok_or((
+                place.clone(),
+                "refers to a GLB binary chunk that is missing".to_string(),
+            ))?,
             gltf::buffer::Source::Uri(uri) => {
                 read_uri(uri, folder).map_err(|m| (place.clone(), m))?
             }
