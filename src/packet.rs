@@ -15,7 +15,9 @@ use std::mem::MaybeUninit;
 
 use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
-use crate::simd::{STACK, block_test, distance, pack, push_sorted, ray_constants, tri_lanes};
+use crate::simd::{
+    STACK, block_test, distance, lanes4, pack, push_sorted, ray_constants, tri_lanes,
+};
 use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
@@ -127,14 +129,13 @@ unsafe fn trace<const ANY: bool>(
             (o_lo, o_hi) = (_mm_min_ps(o_lo, o), _mm_max_ps(o_hi, o));
             (i_lo, i_hi) = (_mm_min_ps(i_lo, c.inv), _mm_max_ps(i_hi, c.inv));
             (f_lo, f_hi) = (_mm_min_ps(f_lo, c.inv_far), _mm_max_ps(f_hi, c.inv_far));
-            let (mut inv_k, mut far_k, mut shear) = ([0f32; 4], [0f32; 4], [0f32; 4]);
-            // SAFETY: each array holds four floats.
-            unsafe {
-                _mm_storeu_ps(inv_k.as_mut_ptr(), c.inv);
-                _mm_storeu_ps(far_k.as_mut_ptr(), c.inv_far);
-                _mm_storeu_ps(shear.as_mut_ptr(), c.shear);
-            }
-            values = ([ox, oy, oz, 0.0], inv_k, far_k, ray.tmin);
+            let shear = lanes4(c.shear);
+            values = (
+                [ox, oy, oz, 0.0],
+                lanes4(c.inv),
+                lanes4(c.inv_far),
+                ray.tmin,
+            );
             tmin_lo = tmin_lo.min(ray.tmin);
             nearest[k] = Nearest::before(ray.tmax);
             packet_tmax = packet_tmax.max(nearest[k].horizon());
@@ -159,12 +160,7 @@ unsafe fn trace<const ANY: bool>(
         t_box.0[r][l] = nearest[k].horizon();
     }
     let range = |lo: __m128, hi: __m128| {
-        let (mut l, mut h) = ([0f32; 4], [0f32; 4]);
-        // SAFETY: each array holds four floats.
-        unsafe {
-            _mm_storeu_ps(l.as_mut_ptr(), lo);
-            _mm_storeu_ps(h.as_mut_ptr(), hi);
-        }
+        let (l, h) = (lanes4(lo), lanes4(hi));
         [0, 1, 2].map(|a| (l[a], h[a]))
     };
     let (o_range, i_range, f_range) = (range(o_lo, o_hi), range(i_lo, i_hi), range(f_lo, f_hi));
@@ -208,17 +204,14 @@ unsafe fn trace<const ANY: bool>(
                     let i = m.trailing_zeros() as usize;
                     m &= m - 1;
                     let child = node.children[i];
-                    // A packet visits nearly every child it enters, so its memory is asked
-                    // for now and arrives while the nearer children are traced.
-                    if child & LEAF == 0 {
+                    // A packet visits nearly every child it enters, so the child's memory
+                    // is asked for now and arrives while the nearer children are traced.
+                    let reference = if child & LEAF == 0 {
                         prefetch(nodes.as_ptr().wrapping_add(child as usize), 1);
+                        child
                     } else {
                         let (first, count) = leaf_range(child);
                         prefetch(blocks.as_ptr().wrapping_add(first as usize), count as usize);
-                    }
-                    let reference = if child & LEAF == 0 {
-                        child
-                    } else {
                         LEAF | (current << SLOT_BITS) | i as u32
                     };
                     let key = pack(entries[i], reference);

@@ -79,7 +79,7 @@ impl View {
         let lens = if self.camera.has_lens() {
             self.sampler.lens(x, y, s)
         } else {
-            (0.5, 0.5)
+            crate::sampler::CENTER
         };
         let mut ray = self.camera.ray_at(u, v, lens);
         ray.tmin = self.tmin;

@@ -11,6 +11,9 @@
 
 use crate::manifest::{SamplerDesc, SamplerKind};
 
+/// The middle of `[0, 1)²`: every offset and lens point of the `center` sampler.
+pub const CENTER: (f64, f64) = (0.5, 0.5);
+
 /// Random dimensions used per sample: 0–1 the pixel offset, 2–3 the lens.
 const DIM_PIXEL: u64 = 0;
 const DIM_LENS: u64 = 2;
@@ -47,7 +50,7 @@ impl Sampler {
     /// The offset every sample of every pixel takes, if it is fixed (`center`).
     pub fn fixed_offset(&self) -> Option<(f64, f64)> {
         match self.kind {
-            SamplerKind::Center => Some((0.5, 0.5)),
+            SamplerKind::Center => Some(CENTER),
             SamplerKind::Independent | SamplerKind::Stratified => None,
         }
     }
@@ -56,7 +59,7 @@ impl Sampler {
     #[inline]
     pub fn pixel_offset(&self, x: u32, y: u32, s: u32) -> (f64, f64) {
         match self.kind {
-            SamplerKind::Center => (0.5, 0.5),
+            SamplerKind::Center => CENTER,
             SamplerKind::Independent => (
                 self.random(x, y, s, DIM_PIXEL),
                 self.random(x, y, s, DIM_PIXEL + 1),
@@ -76,7 +79,7 @@ impl Sampler {
     #[inline]
     pub fn lens(&self, x: u32, y: u32, s: u32) -> (f64, f64) {
         match self.kind {
-            SamplerKind::Center => (0.5, 0.5),
+            SamplerKind::Center => CENTER,
             _ => (
                 self.random(x, y, s, DIM_LENS),
                 self.random(x, y, s, DIM_LENS + 1),

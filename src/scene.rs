@@ -326,10 +326,10 @@ impl Scene {
     pub fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
         // Skipped, not run empty, when there are no planes or spheres: its `None` would
         // go through memory and stall the triangle search that reads it back.
-        let mut best = if self.planes.is_empty() && self.sphere_bvh.is_empty() {
-            None
-        } else {
+        let mut best = if self.has_analytic() {
             self.closest_analytic(ray)
+        } else {
+            None
         };
         if !self.triangles.bvh.is_empty()
             && let Some((nearest, hit)) = self.nearest_triangle(ray, best.map_or(ray.tmax, |h| h.t))
@@ -348,6 +348,12 @@ impl Scene {
                 b2: hit.b2,
             },
         }
+    }
+
+    /// Whether the scene has planes or spheres (the analytic searches have work to do).
+    #[inline(always)]
+    fn has_analytic(&self) -> bool {
+        !self.planes.is_empty() || !self.sphere_bvh.is_empty()
     }
 
     /// The closest plane or sphere hit.
@@ -384,7 +390,7 @@ impl Scene {
     /// traced as packets where the CPU allows, which is much faster.
     pub fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len());
-        let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
+        let analytic = self.has_analytic();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             let mut prepared = [TriangleRay::EMPTY; PACKET];
             for (k, ray) in rays.iter().enumerate() {
@@ -434,7 +440,7 @@ impl Scene {
     /// runs traced as packets as in [`Scene::closest_hits`].
     pub fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len());
-        let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
+        let analytic = self.has_analytic();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             let mut hint = AnyHitHint::default();
             for (ray, out) in rays.iter().zip(out.iter_mut()) {

@@ -69,6 +69,15 @@ pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes {
     }
 }
 
+/// The four lanes of `x`.
+#[inline(always)]
+pub(crate) fn lanes4(x: __m128) -> [f32; 4] {
+    let mut out = [0f32; 4];
+    // SAFETY: `out` holds four floats; SSE is part of x86-64.
+    unsafe { _mm_storeu_ps(out.as_mut_ptr(), x) };
+    out
+}
+
 // The helpers below are `#[inline(always)] unsafe fn` without `#[target_feature]` (the two
 // cannot be combined): they are called only from the AVX2 traversals, into which they and
 // their intrinsics inline.
@@ -305,9 +314,7 @@ impl BlockHits {
         nearest: &mut Nearest,
         found: &mut Option<TriangleHit>,
     ) -> bool {
-        let mut t = [0f32; 4];
-        // SAFETY: `t` holds four floats; SSE is part of x86-64.
-        unsafe { _mm_storeu_ps(t.as_mut_ptr(), self.t) };
+        let t = lanes4(self.t);
         let mut improved = false;
         let mut m = mask;
         while m != 0 {
@@ -326,12 +333,7 @@ impl BlockHits {
     /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
     #[inline(always)]
     pub(crate) fn hit(&self, lane: usize) -> TriangleHit {
-        let get = |x: __m128| {
-            let mut out = [0f32; 4];
-            // SAFETY: `out` holds four floats; SSE is part of x86-64.
-            unsafe { _mm_storeu_ps(out.as_mut_ptr(), x) };
-            out[lane]
-        };
+        let get = |x: __m128| lanes4(x)[lane];
         let (u, v, w, det) = (get(self.u), get(self.v), get(self.w), get(self.det));
         TriangleHit {
             t: get(self.t),
@@ -350,15 +352,9 @@ fn exact_edges(
     sheared: [__m128; 6],
     (u, v, w): (__m128, __m128, __m128),
 ) -> (__m128, __m128, __m128) {
-    let unpack = |x: __m128| {
-        let mut out = [0f32; 4];
-        // SAFETY: `out` holds four floats.
-        unsafe { _mm_storeu_ps(out.as_mut_ptr(), x) };
-        out
-    };
-    let mask = unpack(on_edge);
-    let [ax, ay, bx, by, cx, cy] = sheared.map(unpack);
-    let (mut u, mut v, mut w) = (unpack(u), unpack(v), unpack(w));
+    let mask = lanes4(on_edge);
+    let [ax, ay, bx, by, cx, cy] = sheared.map(lanes4);
+    let (mut u, mut v, mut w) = (lanes4(u), lanes4(v), lanes4(w));
     for lane in 0..BLOCK {
         if mask[lane].to_bits() != 0 {
             (u[lane], v[lane], w[lane]) =
