@@ -1,8 +1,8 @@
 //! A file's bytes, mapped into memory when that is cheaper than reading them.
 //!
-//! Reading copies a file into freshly allocated memory: for a 40 MB OBJ file about 30 ms,
-//! most of it page faults on the new buffer. A mapping lets the parser read the system's
-//! cached copy of the file directly. A file that another process changes or truncates
+//! Reading copies a file into freshly allocated memory, and most of that time goes to
+//! page faults on the new buffer. A mapping lets the parser read the system's cached
+//! copy of the file directly. A file that another process changes or truncates
 //! while it is mapped may read garbled or end the process (SIGBUS), as with any tool that
 //! maps its inputs (ripgrep maps large files the same way); mesh files are not edited in
 //! the middle of a render.

@@ -109,8 +109,8 @@ impl SceneGeometry {
             let m = transform * instance.transform;
             let place = |p: &[f32; 3]| m.transform_point3(DVec3::from_array(p.map(f64::from)));
             let in_range = |q: DVec3| q.is_finite() && q.abs().max_element() <= MAX_MAGNITUDE;
-            // In parallel (a million-triangle mesh took 40 ms one vertex at a time); a
-            // vertex out of range is looked for again in order, to name the first.
+            // In parallel, for million-triangle meshes; a vertex out of range is then
+            // looked for again in order, to name the first.
             let world: Option<Vec<[f32; 3]>> = geometry
                 .positions
                 .par_iter()

@@ -79,7 +79,7 @@ pub fn parse(bytes: &[u8]) -> Option<MeshFile> {
 pub(super) fn parse_in_chunks(bytes: &[u8], chunk: usize) -> Option<MeshFile> {
     // Chunks end after a line feed, which is never part of a longer UTF-8 sequence, so
     // each chunk is valid UTF-8 exactly when the whole text is: they are checked in
-    // parallel (checking 40 MB in one go took 10 ms).
+    // parallel, with the rest of each chunk's reading.
     let mut chunks: Vec<Chunk> = chunks(bytes, chunk.max(1))
         .into_par_iter()
         .map(|r| read(std::str::from_utf8(&bytes[r]).ok()?))
