@@ -52,6 +52,8 @@ pub mod scene;
 #[cfg(target_arch = "x86_64")]
 pub mod simd;
 pub mod sphere;
+#[cfg(target_arch = "x86_64")]
+pub mod sphere_packet;
 pub mod stress;
 pub mod transform;
 pub mod triangle;

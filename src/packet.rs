@@ -343,7 +343,7 @@ fn prefetch<T>(first: *const T, count: usize) {
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
-enum Bound {
+pub(crate) enum Bound {
     Lower,
     Upper,
 }
@@ -351,39 +351,53 @@ enum Bound {
 /// The smallest (or largest) of `(plane − o) · i` over the packet's ranges of `o` and `i`:
 /// the extreme of the four corners. A NaN corner (`0 · ∞`: a ray starting on the plane
 /// it runs along) stands for a ray whose own test ignores this axis, so the bound becomes
-/// unbounded.
+/// unbounded. Written once for both widths: the intrinsics' suffix (`ps` for float32,
+/// `pd` for float64) is the macro's choice.
+macro_rules! corner_bound {
+    ($plane:expr, $o:expr, $i:expr, $bound:expr,
+     $set1:ident, $sub:ident, $mul:ident, $min:ident, $max:ident, $cmp:ident, $or:ident,
+     $blendv:ident) => {{
+        let (plane, (o_lo, o_hi), (i_lo, i_hi)) = ($plane, $o, $i);
+        let x_lo = $sub(plane, $set1(o_hi));
+        let x_hi = $sub(plane, $set1(o_lo));
+        let (i_lo, i_hi) = ($set1(i_lo), $set1(i_hi));
+        let c = [
+            $mul(x_lo, i_lo),
+            $mul(x_lo, i_hi),
+            $mul(x_hi, i_lo),
+            $mul(x_hi, i_hi),
+        ];
+        let nan = $or(
+            $cmp::<_CMP_UNORD_Q>(c[0], c[1]),
+            $cmp::<_CMP_UNORD_Q>(c[2], c[3]),
+        );
+        let (extreme, unbounded) = match $bound {
+            Bound::Lower => ($min($min(c[0], c[1]), $min(c[2], c[3])), f64::NEG_INFINITY),
+            Bound::Upper => ($max($max(c[0], c[1]), $max(c[2], c[3])), f64::INFINITY),
+        };
+        $blendv(extreme, $set1(unbounded as _), nan)
+    }};
+}
+pub(crate) use corner_bound;
+
+/// [`corner_bound!`] for eight float32 children.
 #[inline(always)]
-fn corners(
-    plane: __m256,
-    (o_lo, o_hi): (f32, f32),
-    (i_lo, i_hi): (f32, f32),
-    bound: Bound,
-) -> __m256 {
+fn corners(plane: __m256, o: (f32, f32), i: (f32, f32), bound: Bound) -> __m256 {
     // SAFETY: the callers have AVX2 enabled (this is inlined into them).
     unsafe {
-        let x_lo = _mm256_sub_ps(plane, _mm256_set1_ps(o_hi));
-        let x_hi = _mm256_sub_ps(plane, _mm256_set1_ps(o_lo));
-        let (i_lo, i_hi) = (_mm256_set1_ps(i_lo), _mm256_set1_ps(i_hi));
-        let c = [
-            _mm256_mul_ps(x_lo, i_lo),
-            _mm256_mul_ps(x_lo, i_hi),
-            _mm256_mul_ps(x_hi, i_lo),
-            _mm256_mul_ps(x_hi, i_hi),
-        ];
-        let nan = _mm256_or_ps(
-            _mm256_cmp_ps::<_CMP_UNORD_Q>(c[0], c[1]),
-            _mm256_cmp_ps::<_CMP_UNORD_Q>(c[2], c[3]),
-        );
-        let (extreme, unbounded) = match bound {
-            Bound::Lower => (
-                _mm256_min_ps(_mm256_min_ps(c[0], c[1]), _mm256_min_ps(c[2], c[3])),
-                f32::NEG_INFINITY,
-            ),
-            Bound::Upper => (
-                _mm256_max_ps(_mm256_max_ps(c[0], c[1]), _mm256_max_ps(c[2], c[3])),
-                f32::INFINITY,
-            ),
-        };
-        _mm256_blendv_ps(extreme, _mm256_set1_ps(unbounded), nan)
+        corner_bound!(
+            plane,
+            o,
+            i,
+            bound,
+            _mm256_set1_ps,
+            _mm256_sub_ps,
+            _mm256_mul_ps,
+            _mm256_min_ps,
+            _mm256_max_ps,
+            _mm256_cmp_ps,
+            _mm256_or_ps,
+            _mm256_blendv_ps
+        )
     }
 }

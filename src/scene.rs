@@ -236,6 +236,8 @@ pub struct Scene {
     simd: bool,
     /// Whether the AVX2 kernels are used at all (the spheres' tree needs no more).
     avx2: bool,
+    /// Whether coherent rays meet the spheres as packets: AVX2, and the stack fits.
+    sphere_packets: bool,
     counts: SceneCounts,
 }
 
@@ -286,9 +288,10 @@ impl Scene {
             spheres: sphere_order,
             sphere_ids,
             spheres_by_id: spheres.clone(),
-            sphere_bvh,
             simd: simd_available() && triangles.fits_simd_stack(),
+            sphere_packets: simd_available() && sphere_bvh.stack_bound() <= SIMD_STACK,
             avx2: simd_available(),
+            sphere_bvh,
             triangles,
             counts,
         }
@@ -319,6 +322,12 @@ impl Scene {
     pub fn set_simd(&mut self, on: bool) {
         self.avx2 = on && simd_available();
         self.simd = self.avx2 && self.triangles.fits_simd_stack();
+        self.sphere_packets = self.avx2 && self.sphere_bvh.stack_bound() <= SIMD_STACK;
+    }
+
+    /// Whether coherent rays meet the spheres as packets ([`crate::sphere_packet`]).
+    pub fn uses_sphere_packets(&self) -> bool {
+        self.sphere_packets
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -359,30 +368,72 @@ impl Scene {
     /// The closest plane or sphere hit.
     #[inline(always)]
     fn closest_analytic(&self, ray: &Ray) -> Option<Hit> {
-        let mut best = nearest_plane(&self.planes, ray);
-        let mut tmax = best.map_or(ray.tmax, |h| h.t);
-        if !self.sphere_bvh.is_empty() {
-            let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
-            let leaf = |first, count, tmax: &mut f64| {
-                for i in first..first + count {
-                    if let Some(t) = self.spheres[i as usize].intersect(ray, *tmax) {
-                        *tmax = t;
-                        best = Some(Hit {
-                            t,
-                            primitive: Primitive::Sphere(self.sphere_ids[i as usize]),
-                        });
-                    }
-                }
-            };
-            #[cfg(target_arch = "x86_64")]
-            if self.avx2 {
-                // SAFETY: `avx2` is set only when the CPU has it.
-                unsafe { crate::simd::wide_closest(&self.sphere_bvh, &box_ray, &mut tmax, leaf) };
-                return best;
-            }
-            self.sphere_bvh.closest(&box_ray, &mut tmax, leaf);
+        let plane = nearest_plane(&self.planes, ray);
+        self.closest_sphere(ray, plane.map_or(ray.tmax, |h| h.t))
+            .or(plane)
+    }
+
+    /// The closest sphere hit with `ray.tmin < t < tmax`.
+    #[inline(always)]
+    fn closest_sphere(&self, ray: &Ray, mut tmax: f64) -> Option<Hit> {
+        if self.sphere_bvh.is_empty() {
+            return None;
         }
+        let mut best = None;
+        let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+        let leaf = |first, count, tmax: &mut f64| {
+            for i in first..first + count {
+                if let Some(t) = self.spheres[i as usize].intersect(ray, *tmax) {
+                    *tmax = t;
+                    best = Some(self.sphere_hit(t, i));
+                }
+            }
+        };
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only when the CPU has it.
+            unsafe { crate::simd::wide_closest(&self.sphere_bvh, &box_ray, &mut tmax, leaf) };
+            return best;
+        }
+        self.sphere_bvh.closest(&box_ray, &mut tmax, leaf);
         best
+    }
+
+    /// The hit on the sphere at `position` of the tree's leaf order.
+    fn sphere_hit(&self, t: f64, position: u32) -> Hit {
+        Hit {
+            t,
+            primitive: Primitive::Sphere(self.sphere_ids[position as usize]),
+        }
+    }
+
+    /// The closest sphere hits of up to [`PACKET`] rays, ray `k` looking below `tmax[k]`,
+    /// into `out[k]` (left alone where there is none): as a packet where the CPU and the
+    /// rays allow, else ray by ray.
+    fn closest_spheres(&self, rays: &[Ray], tmax: &[f64], out: &mut [Option<Hit>]) {
+        if self.sphere_bvh.is_empty() {
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack fits.
+        if self.sphere_packets
+            && unsafe {
+                crate::sphere_packet::closest(
+                    &self.sphere_bvh,
+                    &self.spheres,
+                    rays,
+                    tmax,
+                    |k, t, position| out[k] = Some(self.sphere_hit(t, position)),
+                )
+            }
+        {
+            return;
+        }
+        for (k, ray) in rays.iter().enumerate() {
+            if let Some(hit) = self.closest_sphere(ray, tmax[k]) {
+                out[k] = Some(hit);
+            }
+        }
     }
 
     /// [`Scene::closest_hit`] for many rays: `out[i]` receives ray `i`'s hit. Coherent
@@ -390,20 +441,19 @@ impl Scene {
     /// traced as packets where the CPU allows, which is much faster.
     pub fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len());
-        let analytic = self.has_analytic();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
-            let mut prepared = [TriangleRay::EMPTY; PACKET];
+            let mut tmax = [0f64; PACKET];
             for (k, ray) in rays.iter().enumerate() {
-                let mut tmax = ray.tmax;
-                out[k] = None;
-                if analytic {
-                    out[k] = self.closest_analytic(ray);
-                    tmax = out[k].map_or(tmax, |h| h.t);
-                }
-                prepared[k] = TriangleRay::new(ray, tmax);
+                out[k] = nearest_plane(&self.planes, ray);
+                tmax[k] = out[k].map_or(ray.tmax, |h| h.t);
             }
+            self.closest_spheres(rays, &tmax[..rays.len()], out);
             if self.triangles.bvh.is_empty() {
                 continue;
+            }
+            let mut prepared = [TriangleRay::EMPTY; PACKET];
+            for (k, ray) in rays.iter().enumerate() {
+                prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
             }
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
@@ -440,12 +490,12 @@ impl Scene {
     /// runs traced as packets as in [`Scene::closest_hits`].
     pub fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len());
-        let analytic = self.has_analytic();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             let mut hint = AnyHitHint::default();
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
-                *out = analytic && self.any_analytic(ray, &mut hint);
+                *out = self.any_plane(ray);
             }
+            self.any_spheres(rays, out, &mut hint);
             if self.triangles.bvh.is_empty() {
                 continue;
             }
@@ -533,13 +583,18 @@ impl Scene {
     /// Whether a plane or a sphere is hit, the hint's sphere tested first.
     #[inline(always)]
     fn any_analytic(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        if self
-            .planes
+        self.any_plane(ray) || self.any_sphere(ray, hint)
+    }
+
+    fn any_plane(&self, ray: &Ray) -> bool {
+        self.planes
             .iter()
             .any(|p| p.intersect(ray, ray.tmax).is_some())
-        {
-            return true;
-        }
+    }
+
+    /// Whether a sphere has `ray.tmin < t < ray.tmax`, the hint's sphere tested first.
+    #[inline(always)]
+    fn any_sphere(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         if self.sphere_bvh.is_empty() {
             return false;
         }
@@ -566,6 +621,38 @@ impl Scene {
         self.sphere_bvh.any(&box_ray, ray.tmax, leaf);
         hint.remember_sphere(found);
         found.is_some()
+    }
+
+    /// [`Scene::any_sphere`] for up to [`PACKET`] rays, into `out[k]` for rays not already
+    /// marked hit: as a packet where the CPU and the rays allow, else ray by ray.
+    fn any_spheres(&self, rays: &[Ray], out: &mut [bool], hint: &mut AnyHitHint) {
+        if self.sphere_bvh.is_empty() {
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if self.sphere_packets {
+            let mut tmax = [0f64; PACKET];
+            for (k, ray) in rays.iter().enumerate() {
+                // A ray already hit needs no sphere: an empty interval.
+                tmax[k] = if out[k] { f64::NEG_INFINITY } else { ray.tmax };
+            }
+            // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack
+            // fits.
+            if unsafe {
+                crate::sphere_packet::any(
+                    &self.sphere_bvh,
+                    &self.spheres,
+                    rays,
+                    &tmax[..rays.len()],
+                    |k, _, _| out[k] = true,
+                )
+            } {
+                return;
+            }
+        }
+        for (ray, out) in rays.iter().zip(out.iter_mut()) {
+            *out = *out || self.any_sphere(ray, hint);
+        }
     }
 
     /// Whether a triangle has `ray.tmin < t < ray.tmax` for the ray rounded to float32,

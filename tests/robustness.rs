@@ -676,6 +676,144 @@ fn the_avx2_sphere_tree_gives_the_same_hits_as_the_scalar_path() {
     }
 }
 
+/// 8 × 8 tiles of camera rays from `eye` toward `target`, 64 rays per tile (as the
+/// renderer groups them), for a `size` × `size` image.
+fn tiled_camera_rays(eye: DVec3, target: DVec3, size: u32) -> Vec<Ray> {
+    let forward = (target - eye).normalize();
+    let right = forward.cross(DVec3::Y).normalize();
+    let up = right.cross(forward);
+    let tiles = size / 8;
+    (0..tiles * tiles * 64)
+        .map(|i| {
+            let (tile, k) = (i / 64, i % 64);
+            let (x, y) = (tile % tiles * 8 + k % 8, tile / tiles * 8 + k / 8);
+            let [u, v, w] = crate::util::default_camera_direction(x, y, size, size);
+            ray(eye, eye + right * u + up * v + forward * w)
+        })
+        .collect()
+}
+
+#[test]
+fn sphere_packets_find_what_single_rays_and_brute_force_find() {
+    // Packets bound a whole group's box distances from its ranges of origin and inverse
+    // direction; a wrong bound drops spheres some ray of the group hits. The truth here
+    // is brute force over every sphere, and each ray traced alone.
+    if !has_avx2() {
+        return;
+    }
+    let mut numbers = Numbers(31);
+    let mut spheres: Vec<Sphere> = (0..2000)
+        .map(|_| Sphere {
+            center: numbers.vector(10.0),
+            radius: numbers.range(0.02, 0.5),
+        })
+        .collect();
+    // A sphere whose box planes lie exactly on the axis-parallel rays' origins below.
+    spheres.push(Sphere {
+        center: DVec3::new(0.25, -0.5, 20.0),
+        radius: 0.25,
+    });
+    let mut rays = Vec::new();
+    // Camera tiles from outside the field, from inside it, and zoomed in on one sphere.
+    for (eye, target, size) in [
+        (DVec3::new(8.0, 12.0, 30.0), DVec3::ZERO, 96),
+        (DVec3::new(0.3, -0.2, 0.1), DVec3::new(5.0, 1.0, -3.0), 64),
+        (DVec3::new(-1.0, 0.5, -40.0), spheres[7].center, 32),
+    ] {
+        rays.extend(tiled_camera_rays(eye, target, size));
+    }
+    // Groups of rays with exactly zero components (infinite inverses) next to rays
+    // without. The first: rays along +z, some starting on the last sphere's box planes
+    // x = 0, x = 0.5, y = -0.75 (where `0 · ∞` is NaN in the group's bounds), the others
+    // hitting the sphere. The second: rays parallel to x = -1 beside rays starting on the
+    // plane x = 0 and crossing the sphere at a slant, whose group bound on that axis is
+    // unbounded below only because of the NaN; and rays whose tmax ends short of the
+    // sphere, which must not cut the others' search short.
+    for k in 0..64 {
+        let (x, y) = [(0.0, -0.75), (0.25, -0.5), (0.5, -0.6), (0.1, -0.55)][k % 4];
+        rays.push(Ray {
+            origin: DVec3::new(x, y, 10.0 + k as f64 * 0.01),
+            direction: DVec3::Z,
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        });
+    }
+    let slant = DVec3::new(0.1, 0.0, 1.0).normalize();
+    let probe = spheres.len() - 1;
+    let scene = Scene::build(&SceneGeometry {
+        spheres: spheres.clone(),
+        ..SceneGeometry::default()
+    });
+    // The plane x = x0 the tightest box around the last sphere starts at (its box is
+    // rounded outward from x = 0).
+    let x0 = scene
+        .sphere_bvh()
+        .nodes()
+        .iter()
+        .flat_map(|node| (0..8).map(move |slot| node.planes.map(|side| side.map(|a| a[slot]))))
+        .filter(|[lo, hi]| {
+            (0..3).all(|a| lo[a] <= spheres[probe].center[a] && spheres[probe].center[a] <= hi[a])
+        })
+        .map(|[lo, _]| lo[0])
+        .fold(f64::NEG_INFINITY, f64::max);
+    assert!(x0 <= 0.0 && x0 > -1e-6, "{x0}");
+    for k in 0..64 {
+        let z = 19.0 + k as f64 * 1e-3;
+        let (origin, direction, tmax) = [
+            (DVec3::new(-1.0, -0.5, z), DVec3::Z, f64::INFINITY),
+            (DVec3::new(x0, -0.5, z), slant, f64::INFINITY),
+            (DVec3::new(x0, -0.45, z), slant, 0.5),
+            (DVec3::new(x0, -0.45, z), slant, f64::INFINITY),
+        ][k % 4];
+        rays.push(Ray {
+            origin,
+            direction,
+            tmin: 0.0,
+            tmax,
+        });
+    }
+    let start = rays.len() - 128;
+    let cut: Vec<Ray> = tiled_camera_rays(DVec3::new(8.0, 12.0, 30.0), DVec3::ZERO, 32)
+        .into_iter()
+        .enumerate()
+        .map(|(i, mut r)| {
+            r.tmin = [0.0, 30.0, 36.5][i % 3];
+            r.tmax = [f64::INFINITY, 37.0, 40.0, 45.0][i % 4];
+            r
+        })
+        .collect();
+    rays.extend(cut);
+    assert!(scene.uses_sphere_packets());
+    // Groups straddling an axis of the view mix direction signs and go ray by ray.
+    let packets = rays
+        .chunks(64)
+        .filter(|g| scene.traces_as_packet(g))
+        .count();
+    assert!(packets * 4 > rays.len() / 64 * 3, "{packets} packets");
+    assert!(scene.traces_as_packet(&rays[start..start + 64]));
+    assert!(scene.traces_as_packet(&rays[start + 64..start + 128]));
+
+    let (closest, any) = batch_queries(&scene, &rays);
+    let mut hits = 0;
+    for (i, r) in rays.iter().enumerate() {
+        let brute = spheres
+            .iter()
+            .filter_map(|s| s.intersect(r, r.tmax))
+            .min_by(f64::total_cmp);
+        assert_eq!(closest[i].map(|h| h.t), brute, "ray {i}: {r:?}");
+        assert_eq!(closest[i], scene.closest_hit(r), "ray {i}: {r:?}");
+        assert_eq!(any[i], brute.is_some(), "ray {i}: {r:?}");
+        hits += usize::from(brute.is_some());
+    }
+    assert!(
+        hits > 1000 && hits < rays.len() - 1000,
+        "{hits} of {}",
+        rays.len()
+    );
+    let parallel_hits = (start..start + 128).filter(|&i| any[i]).count();
+    assert_eq!(parallel_hits, 64, "the rays meant to hit the last sphere");
+}
+
 #[test]
 fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
     // Spheres in front of, behind and cutting through a mesh, over a plane: a batch must

@@ -1,0 +1,314 @@
+//! Packets of coherent rays (the camera rays of an 8 × 8 tile) traced together through
+//! the spheres' float64 tree with AVX2: [`crate::packet`]'s scheme in float64.
+//!
+//! Inner nodes are tested once per packet, with bounds on the packet's entry and exit
+//! distances from the corners of its ranges of origin and reciprocal direction (computed
+//! in float64, they bound every ray's own float64 values, rounding being monotonic). A
+//! node is therefore skipped only if every ray's own robust test would skip it. A leaf's
+//! box is then tested ray by ray, four rays per instruction, with exactly the single-ray
+//! test, and the spheres of each entering ray with [`Sphere::intersect`]. Each ray gets the
+//! hit its own traversal finds, except that of two spheres at the same `t` (to within
+//! rounding) which one is reported may differ, as the visiting order does.
+
+use std::arch::x86_64::*;
+use std::mem::MaybeUninit;
+
+use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, f32_at_most, leaf_range};
+use crate::packet::{Bound, PACKET, corner_bound};
+use crate::ray::Ray;
+use crate::simd::{STACK, distance, pack, push_sorted};
+use crate::sphere::Sphere;
+
+/// Groups of four rays (one float64 lane each).
+const GROUPS: usize = PACKET / 4;
+
+/// Stack entries for a leaf carry its parent node and slot (for the leaf's box).
+const SLOT_BITS: u32 = 3;
+
+/// One ray per lane, four rays per group.
+#[repr(C, align(32))]
+struct Groups([[f64; 4]; GROUPS]);
+
+impl Groups {
+    const ZERO: Groups = Groups([[0.0; 4]; GROUPS]);
+
+    /// Group `g`'s four lanes.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    unsafe fn load(&self, g: usize) -> __m256d {
+        // SAFETY: groups are 32-byte aligned arrays of four doubles.
+        unsafe { _mm256_load_pd(self.0[g].as_ptr()) }
+    }
+}
+
+/// Closest sphere hits of up to [`PACKET`] rays traced together, ray `k` looking for
+/// `rays[k].tmin < t < tmax[k]`: `found(k, t, position)` is called for each ray with a
+/// hit, `position` indexing `spheres` (the tree's leaf order). Returns `false`, calling
+/// nothing, when the rays' directions differ in sign on some axis.
+///
+/// # Safety
+/// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
+#[target_feature(enable = "avx2")]
+pub unsafe fn closest(
+    bvh: &Bvh<f64>,
+    spheres: &[Sphere],
+    rays: &[Ray],
+    tmax: &[f64],
+    found: impl FnMut(usize, f64, u32),
+) -> bool {
+    // SAFETY: as required of the caller.
+    unsafe { trace::<false>(bvh, spheres, rays, tmax, found) }
+}
+
+/// Whether each of up to [`PACKET`] rays hits a sphere with `rays[k].tmin < t < tmax[k]`,
+/// traced together: `found(k, t, position)` is called for each ray that does, with some
+/// hit (not necessarily the nearest); rays leave the packet at their first hit. Returns
+/// `false`, calling nothing, when the rays' directions differ in sign on some axis.
+///
+/// # Safety
+/// As for [`closest`].
+#[target_feature(enable = "avx2")]
+pub unsafe fn any(
+    bvh: &Bvh<f64>,
+    spheres: &[Sphere],
+    rays: &[Ray],
+    tmax: &[f64],
+    found: impl FnMut(usize, f64, u32),
+) -> bool {
+    // SAFETY: as required of the caller.
+    unsafe { trace::<true>(bvh, spheres, rays, tmax, found) }
+}
+
+/// The packet traversal: closest hits, or with `ANY` first hits.
+#[target_feature(enable = "avx2")]
+unsafe fn trace<const ANY: bool>(
+    bvh: &Bvh<f64>,
+    spheres: &[Sphere],
+    rays: &[Ray],
+    tmax: &[f64],
+    mut found: impl FnMut(usize, f64, u32),
+) -> bool {
+    assert!(rays.len() <= PACKET && tmax.len() == rays.len());
+    assert!(
+        bvh.stack_bound() <= STACK,
+        "the single-ray path handles deeper trees"
+    );
+    let n = rays.len();
+    if n == 0 {
+        return true;
+    }
+    // Per-ray values, four lanes per group; lanes past `n` repeat the last ray but never
+    // enter a box (their horizon is −∞).
+    let mut origin = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
+    let mut inv = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
+    let mut inv_far = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
+    let mut tmin = Groups::ZERO;
+    // Each ray's horizon: `tmax`, then its nearest hit so far.
+    let mut horizon = Groups::ZERO;
+    let mut nearest = [u32::MAX; PACKET];
+    // Rays that may still find a hit (for `ANY`).
+    let mut live = 0;
+    // The packet's ranges per axis over its rays: origin, reciprocal direction (near and
+    // far planes); smallest tmin; largest horizon.
+    let mut o_range = [(f64::INFINITY, f64::NEG_INFINITY); 3];
+    let (mut i_range, mut f_range) = (o_range, o_range);
+    let mut tmin_lo = f64::INFINITY;
+    let mut packet_tmax = f64::NEG_INFINITY;
+    let mut octant = [0usize; 3];
+    let widen = |(lo, hi): &mut (f64, f64), x: f64| (*lo, *hi) = (lo.min(x), hi.max(x));
+    for k in 0..PACKET {
+        let (g, l) = (k / 4, k % 4);
+        let ray = &rays[k.min(n - 1)];
+        let r = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+        if k < n {
+            if k == 0 {
+                octant = r.near;
+            } else if r.near != octant {
+                return false;
+            }
+            for a in 0..3 {
+                widen(&mut o_range[a], r.origin[a]);
+                widen(&mut i_range[a], r.inv_dir[a]);
+                widen(&mut f_range[a], r.inv_dir_far[a]);
+            }
+            tmin_lo = tmin_lo.min(r.tmin);
+            packet_tmax = packet_tmax.max(tmax[k]);
+            live += usize::from(tmax[k] > r.tmin);
+        }
+        for a in 0..3 {
+            origin[a].0[g][l] = r.origin[a];
+            inv[a].0[g][l] = r.inv_dir[a];
+            inv_far[a].0[g][l] = r.inv_dir_far[a];
+        }
+        tmin.0[g][l] = r.tmin;
+        horizon.0[g][l] = if k < n { tmax[k] } else { f64::NEG_INFINITY };
+    }
+    let nodes = bvh.nodes();
+    if nodes.is_empty() || live == 0 {
+        return true;
+    }
+    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
+    let near: [usize; 3] = [0, 1, 2].map(|a| offset(octant[a], a));
+    let far: [usize; 3] = [0, 1, 2].map(|a| offset(1 - octant[a], a));
+
+    let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
+    let mut sp = 0usize;
+    let mut current = 0u32;
+    loop {
+        if current & LEAF == 0 {
+            let node = &nodes[current as usize];
+            let planes = node.planes.as_ptr().cast::<f64>();
+            let mut entries = [0f64; WIDTH];
+            let mut mask = 0u32;
+            for half in [0, 4] {
+                // SAFETY: plane offsets are below 6 × 8 doubles of a 64-byte aligned node,
+                // so each group of four is 32-byte aligned.
+                let load = |offset: usize| unsafe { _mm256_load_pd(planes.add(offset + half)) };
+                let bound = |plane, o, i, bound| {
+                    corner_bound!(
+                        plane,
+                        o,
+                        i,
+                        bound,
+                        _mm256_set1_pd,
+                        _mm256_sub_pd,
+                        _mm256_mul_pd,
+                        _mm256_min_pd,
+                        _mm256_max_pd,
+                        _mm256_cmp_pd,
+                        _mm256_or_pd,
+                        _mm256_blendv_pd
+                    )
+                };
+                let mut enter = _mm256_set1_pd(tmin_lo);
+                let mut exit = _mm256_set1_pd(packet_tmax);
+                for a in 0..3 {
+                    let lower = bound(load(near[a]), o_range[a], i_range[a], Bound::Lower);
+                    let upper = bound(load(far[a]), o_range[a], f_range[a], Bound::Upper);
+                    enter = _mm256_max_pd(lower, enter);
+                    exit = _mm256_min_pd(upper, exit);
+                }
+                let hit = _mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit);
+                mask |= (_mm256_movemask_pd(hit) as u32) << half;
+                // SAFETY: `entries` holds eight doubles.
+                unsafe { _mm256_storeu_pd(entries.as_mut_ptr().add(half), enter) };
+            }
+            // Every entered child onto the stack, farthest first; leaves as their parent
+            // and slot, so that their box can be read when they are reached.
+            let base = sp;
+            let mut m = mask;
+            while m != 0 {
+                let i = m.trailing_zeros() as usize;
+                m &= m - 1;
+                let child = node.children[i];
+                let reference = if child & LEAF == 0 {
+                    child
+                } else {
+                    LEAF | (current << SLOT_BITS) | i as u32
+                };
+                // Rounded down, so the stack's order and the pop test stay conservative.
+                let key = pack(f32_at_most(entries[i]), reference);
+                if ANY {
+                    // Any order finds a hit as well; skip the sort.
+                    stack[sp] = MaybeUninit::new(key);
+                    sp += 1;
+                } else {
+                    push_sorted(&mut stack, base, &mut sp, key);
+                }
+            }
+        } else {
+            // A leaf: its box against every ray, then each entering ray's spheres.
+            let parent = (current & !LEAF) >> SLOT_BITS;
+            let slot = (current & ((1 << SLOT_BITS) - 1)) as usize;
+            let node = &nodes[parent as usize];
+            let plane = |offset: usize| {
+                let (side, axis) = (offset / (3 * WIDTH), offset / WIDTH % 3);
+                _mm256_set1_pd(node.planes[side][axis][slot])
+            };
+            let (first, count) = leaf_range(node.children[slot]);
+            let mut improved = false;
+            for g in 0..GROUPS {
+                // SAFETY (for the loads): AVX2 is enabled in this function.
+                let slab = |offset: usize, a: usize, inv: &[Groups; 3]| unsafe {
+                    _mm256_mul_pd(
+                        _mm256_sub_pd(plane(offset), origin[a].load(g)),
+                        inv[a].load(g),
+                    )
+                };
+                // The single-ray test's operations in its order (`max(a, b)` is `b` for a
+                // NaN `a`, as its `max_keep` is).
+                // SAFETY: AVX2 is enabled in this function.
+                let (t_lo, t_hi) = unsafe { (tmin.load(g), horizon.load(g)) };
+                let enter = _mm256_max_pd(
+                    slab(near[0], 0, &inv),
+                    _mm256_max_pd(
+                        slab(near[1], 1, &inv),
+                        _mm256_max_pd(slab(near[2], 2, &inv), t_lo),
+                    ),
+                );
+                let exit = _mm256_min_pd(
+                    slab(far[0], 0, &inv_far),
+                    _mm256_min_pd(
+                        slab(far[1], 1, &inv_far),
+                        _mm256_min_pd(slab(far[2], 2, &inv_far), t_hi),
+                    ),
+                );
+                let mut hits = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit)) as u32;
+                while hits != 0 {
+                    let l = hits.trailing_zeros() as usize;
+                    hits &= hits - 1;
+                    let k = g * 4 + l;
+                    for i in first..first + count {
+                        let best = &mut horizon.0[g][l];
+                        if let Some(t) = spheres[i as usize].intersect(&rays[k], *best) {
+                            nearest[k] = i;
+                            improved = true;
+                            if ANY {
+                                // Reported now: the ray leaves the packet.
+                                found(k, t, i);
+                                *best = f64::NEG_INFINITY;
+                                live -= 1;
+                                break;
+                            }
+                            *best = t;
+                        }
+                    }
+                }
+            }
+            if improved {
+                // SAFETY: AVX2 is enabled in this function.
+                let mut widest = unsafe { horizon.load(0) };
+                for g in 1..GROUPS {
+                    // SAFETY: as above.
+                    widest = _mm256_max_pd(widest, unsafe { horizon.load(g) });
+                }
+                let mut lanes = [0f64; 4];
+                // SAFETY: `lanes` holds four doubles.
+                unsafe { _mm256_storeu_pd(lanes.as_mut_ptr(), widest) };
+                packet_tmax = lanes.into_iter().fold(f64::NEG_INFINITY, f64::max);
+            }
+        }
+        // The next entry that some ray may still need.
+        loop {
+            if sp == 0 || (ANY && live == 0) {
+                if !ANY {
+                    for (k, &i) in nearest[..n].iter().enumerate() {
+                        if i != u32::MAX {
+                            found(k, horizon.0[k / 4][k % 4], i);
+                        }
+                    }
+                }
+                return true;
+            }
+            sp -= 1;
+            // SAFETY: every slot below `sp` was written above.
+            let entry = unsafe { stack[sp].assume_init() };
+            if f64::from(distance(entry)) <= packet_tmax {
+                current = entry as u32;
+                break;
+            }
+        }
+    }
+}
