@@ -171,18 +171,16 @@ impl Batch {
     }
 
     /// The scene of `geometry`, around the previous job's triangle tree if it has the
-    /// same triangles.
+    /// same triangles (which may then be left unplaced).
     fn build_scene(&mut self, geometry: &SceneGeometry, report: &mut JobReport) -> Scene {
         let preset = BuildPreset::default();
-        if geometry.triangles.is_empty() {
+        if geometry.triangles.is_empty() && geometry.source_triangle_count() == 0 {
             // Nothing to build, and the last tree stays for the jobs after this one.
             return Scene::build_with(geometry, preset);
         }
-        if let Some((sources, tree)) = &self.last_tree
-            && geometry.same_triangles_as(sources)
-        {
+        if let Some(tree) = self.reusable_tree(geometry) {
             report.triangle_tree_reused = true;
-            return Scene::build_around(geometry, preset, Arc::clone(tree));
+            return Scene::build_around(geometry, preset, tree);
         }
         // Drop the old tree before building the new one, so two are never held at once.
         self.last_tree = None;
@@ -190,6 +188,14 @@ impl Batch {
         self.tree_builds += 1;
         self.last_tree = Some((geometry.sources.clone(), Arc::clone(scene.triangle_tree())));
         scene
+    }
+
+    /// The previous job's triangle tree, if `geometry` has the same triangles.
+    fn reusable_tree(&self, geometry: &SceneGeometry) -> Option<Arc<TriangleTree>> {
+        let (sources, tree) = self.last_tree.as_ref()?;
+        geometry
+            .same_triangles_as(sources)
+            .then(|| Arc::clone(tree))
     }
 
     /// Renders the manifest at `path`. `progress` receives finished pixel counts.
@@ -229,7 +235,13 @@ impl Batch {
             });
         }
 
-        let geometry = SceneGeometry::load(&manifest, &mut self.meshes)?;
+        let mut geometry = SceneGeometry::load_unplaced(&manifest, &mut self.meshes)?;
+        // Triangles the previous job's tree was built from need no placing again.
+        let reuse =
+            self.options.backend == Backend::Raybatch && self.reusable_tree(&geometry).is_some();
+        if !reuse {
+            geometry.place_triangles(&manifest)?;
+        }
         report.warnings = geometry.warnings.clone();
         report.load_s = start.elapsed().as_secs_f64();
         match self.options.backend {

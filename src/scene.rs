@@ -62,6 +62,19 @@ impl SceneGeometry {
 impl SceneGeometry {
     /// Reads the manifest's meshes (through `cache`) and places every primitive.
     pub fn load(manifest: &Manifest, cache: &mut MeshCache) -> Result<SceneGeometry, Error> {
+        let mut geometry = SceneGeometry::load_unplaced(manifest, cache)?;
+        geometry.place_triangles(manifest)?;
+        Ok(geometry)
+    }
+
+    /// [`SceneGeometry::load`] without placing the meshes' triangles: `triangles` stays
+    /// empty and `sources` says what they would be. For a job whose triangles are those
+    /// of a tree already built ([`Scene::build_around`]); [`SceneGeometry::place_triangles`]
+    /// places them.
+    pub fn load_unplaced(
+        manifest: &Manifest,
+        cache: &mut MeshCache,
+    ) -> Result<SceneGeometry, Error> {
         let mut geometry = SceneGeometry {
             spheres: manifest
                 .spheres
@@ -82,18 +95,41 @@ impl SceneGeometry {
             ..SceneGeometry::default()
         };
         for (i, desc) in manifest.meshes.iter().enumerate() {
-            let key = format!("meshes[{i}].file");
             let mesh = cache.load(&desc.file).map_err(|source| Error::Mesh {
-                key: key.clone(),
+                key: format!("meshes[{i}].file"),
                 source,
             })?;
             geometry.warnings.extend(mesh.warnings.iter().cloned());
-            geometry
-                .add_mesh(&mesh, desc.transform, &desc.file)
-                .map_err(|source| Error::Mesh { key, source })?;
             geometry.sources.push((mesh, desc.transform));
         }
         Ok(geometry)
+    }
+
+    /// Places the triangles of every source, in order, after those already placed;
+    /// `manifest` is the one the sources were loaded from (errors name its files).
+    pub fn place_triangles(&mut self, manifest: &Manifest) -> Result<(), Error> {
+        let sources = std::mem::take(&mut self.sources);
+        let placed = sources
+            .iter()
+            .zip(&manifest.meshes)
+            .enumerate()
+            .try_for_each(|(i, ((mesh, transform), desc))| {
+                self.add_mesh(mesh, *transform, &desc.file)
+                    .map_err(|source| Error::Mesh {
+                        key: format!("meshes[{i}].file"),
+                        source,
+                    })
+            });
+        self.sources = sources;
+        placed
+    }
+
+    /// Triangles the sources hold (placed or not).
+    pub fn source_triangle_count(&self) -> usize {
+        self.sources
+            .iter()
+            .map(|(mesh, _)| mesh.triangle_count())
+            .sum()
     }
 
     /// Places every instance of `mesh` with `transform` applied after the file's own.
@@ -254,9 +290,9 @@ impl Scene {
         Scene::build_around(geometry, preset, triangles)
     }
 
-    /// Builds the scene around a triangle tree already built from `geometry.triangles`
+    /// Builds the scene around a triangle tree already built from `geometry`'s triangles
     /// (by [`TriangleTree::build`], perhaps for an earlier job); only the spheres' tree is
-    /// built.
+    /// built. The triangles may be left unplaced ([`SceneGeometry::load_unplaced`]).
     ///
     /// # Panics
     /// If the tree holds a different number of triangles than `geometry`.
@@ -268,11 +304,12 @@ impl Scene {
         let SceneGeometry {
             spheres, planes, ..
         } = geometry;
-        assert_eq!(
-            triangles.len,
-            geometry.triangles.len(),
-            "another scene's tree"
-        );
+        let count = if geometry.triangles.is_empty() {
+            geometry.source_triangle_count()
+        } else {
+            geometry.triangles.len()
+        };
+        assert_eq!(triangles.len, count, "another scene's tree");
         let (sphere_order, sphere_ids, sphere_bvh) = build_spheres(spheres, preset);
 
         let counts = SceneCounts {
