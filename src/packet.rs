@@ -11,6 +11,7 @@
 //! rays one by one.
 
 use std::arch::x86_64::*;
+use std::cell::Cell;
 use std::mem::MaybeUninit;
 
 use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
@@ -28,6 +29,75 @@ const ROWS: usize = PACKET / 8;
 /// Stack entries for a leaf carry its parent node and slot (for the leaf's box).
 const SLOT_BITS: u32 = 3;
 
+/// What one packet's traversal visited: how well its rays shared the work.
+///
+/// A packet's inner-node test bounds all its rays at once, so it reaches every leaf that
+/// some ray *might* enter. When the rays spread over many small leaves (a detailed mesh
+/// seen at low resolution) most leaves it reaches are entered by no ray at all, and
+/// tracing the rays one by one is faster.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Visits {
+    /// Leaves reached.
+    pub leaves: u32,
+    /// Rays entering their boxes, summed over those leaves.
+    pub entries: u32,
+}
+
+thread_local! {
+    /// This thread's pacing of packets: groups of rays still to trace one by one, and how
+    /// many the next wasteful packet sends one by one.
+    static PACING: Cell<(u32, u32)> = const { Cell::new((0, SINGLE_AFTER_WASTE)) };
+}
+
+/// Groups of rays traced one by one after a wasteful packet before a packet is tried
+/// again (neighbouring groups, the render loop's next ones, see the same detail); it
+/// doubles with each wasteful packet in a row, up to [`MOST_SINGLE_AFTER_WASTE`], so that
+/// an image where packets never pay tries few.
+pub const SINGLE_AFTER_WASTE: u32 = 8;
+/// The most groups traced one by one between two packets.
+pub const MOST_SINGLE_AFTER_WASTE: u32 = 128;
+
+/// Whether this thread's next group of rays should be tried as a packet: not for a while
+/// after a [`wasteful`](Visits::wasteful) one. Either way gives the same hits; this only
+/// picks the faster.
+pub fn worth_trying() -> bool {
+    PACING.with(|pacing| {
+        let (left, next) = pacing.get();
+        pacing.set((left.saturating_sub(1), next));
+        left == 0
+    })
+}
+
+/// Records what a packet visited, for [`worth_trying`].
+pub fn record(visits: Visits) {
+    if visits.leaves < Visits::JUDGED_FROM {
+        return;
+    }
+    PACING.with(|pacing| {
+        let (_, next) = pacing.get();
+        pacing.set(if visits.wasteful() {
+            (next, (2 * next).min(MOST_SINGLE_AFTER_WASTE))
+        } else {
+            (0, SINGLE_AFTER_WASTE)
+        });
+    });
+}
+
+impl Visits {
+    /// Fewest leaves before [`Visits::wasteful`] judges a packet.
+    pub const JUDGED_FROM: u32 = 16;
+    /// Rays per leaf reached below which packets are judged wasteful: about where one
+    /// by one becomes faster (measured on meshes of 82k and 124k triangles seen at
+    /// 64² to 2048² pixels; DEVELOPERS.md, "Performance notes").
+    pub const MIN_ENTRIES_PER_LEAF: u32 = 1;
+
+    /// Whether so few rays entered the leaves the packet reached that the next rays
+    /// nearby are better traced one by one.
+    pub fn wasteful(self) -> bool {
+        self.leaves >= Self::JUDGED_FROM && self.entries < self.leaves * Self::MIN_ENTRIES_PER_LEAF
+    }
+}
+
 /// One ray per lane, eight rays per row.
 #[repr(C, align(32))]
 struct Rows([[f32; 8]; ROWS]);
@@ -38,8 +108,8 @@ impl Rows {
 
 /// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
 /// called for each ray `i` with a triangle hit, the nearest (as [`crate::simd::closest`]
-/// finds it). Returns `false`, calling nothing, when the rays' directions differ in sign
-/// on some axis.
+/// finds it). Returns what the traversal visited, or `None`, calling nothing, when the
+/// rays' directions differ in sign on some axis.
 ///
 /// # Safety
 /// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
@@ -49,14 +119,15 @@ pub unsafe fn closest(
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
     found: impl FnMut(usize, Nearest, TriangleHit),
-) -> bool {
+) -> Option<Visits> {
     // SAFETY: as required of the caller.
     unsafe { trace::<false>(bvh, blocks, rays, found, &mut []) }
 }
 
 /// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
-/// together; rays leave the packet as soon as they hit. Returns `false`, touching nothing,
-/// when the rays' directions differ in sign on some axis.
+/// together; rays leave the packet as soon as they hit. Returns what the traversal
+/// visited, or `None`, touching nothing, when the rays' directions differ in sign on some
+/// axis.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -66,7 +137,7 @@ pub unsafe fn any(
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
     out: &mut [bool],
-) -> bool {
+) -> Option<Visits> {
     assert_eq!(rays.len(), out.len());
     // SAFETY: as required of the caller.
     unsafe { trace::<true>(bvh, blocks, rays, |_, _, _| (), out) }
@@ -81,15 +152,16 @@ unsafe fn trace<const ANY: bool>(
     rays: &[TriangleRay],
     mut closest: impl FnMut(usize, Nearest, TriangleHit),
     any: &mut [bool],
-) -> bool {
+) -> Option<Visits> {
     assert!(rays.len() <= PACKET);
     assert!(
         bvh.stack_bound() <= STACK,
         "the scalar path handles deeper trees"
     );
     let n = rays.len();
+    let mut visits = Visits::default();
     if n == 0 {
-        return true;
+        return Some(visits);
     }
     any.fill(false);
     // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
@@ -120,7 +192,7 @@ unsafe fn trace<const ANY: bool>(
             if k == 0 {
                 octant = near;
             } else if near != octant {
-                return false;
+                return None;
             }
             // SAFETY: AVX2 is enabled in this function.
             let c = unsafe { ray_constants(ray.direction) };
@@ -166,7 +238,7 @@ unsafe fn trace<const ANY: bool>(
     let (o_range, i_range, f_range) = (range(o_lo, o_hi), range(i_lo, i_hi), range(f_lo, f_hi));
     let nodes = bvh.nodes();
     if nodes.is_empty() {
-        return true;
+        return Some(visits);
     }
     let mut live = n;
     let mut found: [Option<TriangleHit>; PACKET] = [None; PACKET];
@@ -235,6 +307,7 @@ unsafe fn trace<const ANY: bool>(
             };
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
+            visits.leaves += 1;
             for r in 0..ROWS {
                 // SAFETY: rows are 32-byte aligned arrays of eight floats.
                 let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
@@ -259,6 +332,7 @@ unsafe fn trace<const ANY: bool>(
                     ),
                 );
                 let mut hits = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+                visits.entries += hits.count_ones();
                 while hits != 0 {
                     let k = r * 8 + hits.trailing_zeros() as usize;
                     hits &= hits - 1;
@@ -316,7 +390,7 @@ unsafe fn trace<const ANY: bool>(
                         }
                     }
                 }
-                return true;
+                return Some(visits);
             }
             sp -= 1;
             // SAFETY: every slot below `sp` was written above.
@@ -399,5 +473,47 @@ fn corners(plane: __m256, o: (f32, f32), i: (f32, f32), bound: Bound) -> __m256 
             _mm256_or_ps,
             _mm256_blendv_ps
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_wasteful_packet_sends_the_next_groups_one_by_one_for_doubling_spells() {
+        let wasteful = Visits {
+            leaves: 40,
+            entries: 39,
+        };
+        let useful = Visits {
+            leaves: 40,
+            entries: 40,
+        };
+        let unjudged = Visits {
+            leaves: Visits::JUDGED_FROM - 1,
+            entries: 0,
+        };
+        assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
+        // Each test runs on its own thread: the pacing starts fresh.
+        let spell = || {
+            let single = std::iter::repeat_with(worth_trying)
+                .take_while(|&packet| !packet)
+                .count();
+            single as u32
+        };
+        assert_eq!(spell(), 0);
+        record(unjudged);
+        assert_eq!(spell(), 0);
+        for expected in [8, 16, 32, 64, 128, 128] {
+            record(wasteful);
+            assert_eq!(spell(), expected);
+        }
+        // A useful packet ends the doubling; a packet reaching few leaves says nothing.
+        record(useful);
+        assert_eq!(spell(), 0);
+        record(wasteful);
+        record(unjudged);
+        assert_eq!(spell(), SINGLE_AFTER_WASTE);
     }
 }

@@ -274,6 +274,9 @@ pub struct Scene {
     avx2: bool,
     /// Whether coherent rays meet the spheres as packets: AVX2, and the stack fits.
     sphere_packets: bool,
+    /// Whether triangle packets are skipped for a while after a wasteful one
+    /// ([`crate::packet::worth_trying`]); off, every eligible group is a packet.
+    adaptive_packets: bool,
     counts: SceneCounts,
 }
 
@@ -327,6 +330,7 @@ impl Scene {
             spheres_by_id: spheres.clone(),
             simd: simd_available() && triangles.fits_simd_stack(),
             sphere_packets: simd_available() && sphere_bvh.stack_bound() <= SIMD_STACK,
+            adaptive_packets: true,
             avx2: simd_available(),
             sphere_bvh,
             triangles,
@@ -365,6 +369,18 @@ impl Scene {
     /// Whether coherent rays meet the spheres as packets ([`crate::sphere_packet`]).
     pub fn uses_sphere_packets(&self) -> bool {
         self.sphere_packets
+    }
+
+    /// With `false`, every group of rays that can be a triangle packet is one, even after
+    /// wasteful packets (for tests of the packet path; the hits are the same either way).
+    pub fn set_adaptive_packets(&mut self, on: bool) {
+        self.adaptive_packets = on;
+    }
+
+    /// Whether to try the next group of rays as a triangle packet.
+    #[cfg(target_arch = "x86_64")]
+    fn packet_worth_trying(&self) -> bool {
+        !self.adaptive_packets || crate::packet::worth_trying()
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -475,7 +491,9 @@ impl Scene {
 
     /// [`Scene::closest_hit`] for many rays: `out[i]` receives ray `i`'s hit. Coherent
     /// rays (neighbouring camera rays, in runs of up to [`crate::packet::PACKET`]) are
-    /// traced as packets where the CPU allows, which is much faster.
+    /// traced as packets where the CPU allows, which is much faster unless the triangles
+    /// are finer than the rays are apart (then they go one by one for a while, on the
+    /// evidence of the last packet: [`crate::packet::Visits`]).
     pub fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len());
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
@@ -494,18 +512,20 @@ impl Scene {
             }
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
-            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            if self.simd
-                && unsafe {
+            if self.simd && self.packet_worth_trying() {
+                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+                let visits = unsafe {
                     crate::packet::closest(
                         &self.triangles.bvh,
                         &self.triangles.blocks,
                         prepared,
                         |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
                     )
+                };
+                if let Some(visits) = visits {
+                    crate::packet::record(visits);
+                    continue;
                 }
-            {
-                continue;
             }
             for (k, ray) in rays.iter().enumerate() {
                 let tmax = out[k].map_or(ray.tmax, |h| h.t);
@@ -516,8 +536,9 @@ impl Scene {
         }
     }
 
-    /// Whether [`Scene::closest_hits`] traces these rays (at most one packet's worth) as a
-    /// packet rather than one by one: AVX2, and the same direction signs for all.
+    /// Whether [`Scene::closest_hits`] can trace these rays (at most one packet's worth) as
+    /// a packet rather than one by one: AVX2, and the same direction signs for all. (Just
+    /// after wasteful packets it still goes one by one, see [`crate::packet::Visits`].)
     pub fn traces_as_packet(&self, rays: &[Ray]) -> bool {
         let signs = |r: &Ray| r.direction.as_vec3().to_array().map(f32::is_sign_negative);
         self.simd && rays.len() <= PACKET && rays.iter().all(|r| signs(r) == signs(&rays[0]))
@@ -537,7 +558,7 @@ impl Scene {
                 continue;
             }
             #[cfg(target_arch = "x86_64")]
-            if self.simd {
+            if self.simd && self.packet_worth_trying() {
                 let mut prepared = [TriangleRay::EMPTY; PACKET];
                 for (k, ray) in rays.iter().enumerate() {
                     // A ray already hit needs no triangle: an empty interval.
@@ -547,14 +568,16 @@ impl Scene {
                 let mut triangles = [false; PACKET];
                 let n = rays.len();
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-                if unsafe {
+                let visits = unsafe {
                     crate::packet::any(
                         &self.triangles.bvh,
                         &self.triangles.blocks,
                         &prepared[..n],
                         &mut triangles[..n],
                     )
-                } {
+                };
+                if let Some(visits) = visits {
+                    crate::packet::record(visits);
                     for (out, hit) in out.iter_mut().zip(triangles) {
                         *out |= hit;
                     }
@@ -952,6 +975,11 @@ impl TriangleTree {
     }
 
     /// Bytes of blocks, tree nodes and hint roots.
+    /// The triangle blocks in leaf order (for inspection and tests).
+    pub fn blocks(&self) -> &[TriangleBlock] {
+        &self.blocks
+    }
+
     pub fn memory_bytes(&self) -> usize {
         self.blocks.len() * (std::mem::size_of::<TriangleBlock>() + std::mem::size_of::<u32>())
             + self.bvh.memory_bytes()

@@ -575,6 +575,8 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
                 preset,
             );
             assert!(scene.uses_simd());
+            // Every group that can be a packet is one, wasteful or not.
+            scene.set_adaptive_packets(false);
             let fast: Vec<_> = rays
                 .iter()
                 .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
@@ -812,6 +814,58 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
     );
     let parallel_hits = (start..start + 128).filter(|&i| any[i]).count();
     assert_eq!(parallel_hits, 64, "the rays meant to hit the last sphere");
+}
+
+#[test]
+fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
+    // A packet tests inner nodes for all its rays at once, so when each of its rays meets
+    // other small triangles it reaches many leaves that no ray enters; such packets are
+    // judged wasteful, and the rays near them go one by one. The same mesh filling a
+    // large image gives packets whose rays share leaves.
+    if !has_avx2() {
+        return;
+    }
+    let scene = Scene::build(&placed(&procedural::icosphere(6), DMat4::IDENTITY));
+    let eye = DVec3::new(2.0, 1.2, 2.0);
+    // Of the packets that reach any leaf, the share judged wasteful (of some 200 tiles).
+    let wasteful_share = |size: u32| {
+        let rays = tiled_camera_rays(eye, DVec3::ZERO, size);
+        let step = (rays.len() / 64 / 200).max(1);
+        let (mut reaching, mut wasteful) = (0, 0);
+        for group in rays.chunks(64).step_by(step) {
+            let prepared: Vec<_> = group
+                .iter()
+                .map(|r| raybatch::scene::TriangleRay {
+                    origin: r.origin.as_vec3().to_array(),
+                    direction: r.direction.as_vec3().to_array(),
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                })
+                .collect();
+            // SAFETY: AVX2 is present, and the default tree fits the packet's stack.
+            let visits = unsafe {
+                raybatch::packet::closest(
+                    scene.triangle_bvh(),
+                    scene.triangle_tree().blocks(),
+                    &prepared,
+                    |_, _, _| (),
+                )
+            };
+            // Tiles whose rays differ in direction signs are not packets.
+            let Some(visits) = visits else { continue };
+            if visits.leaves > 0 {
+                reaching += 1;
+                wasteful += usize::from(visits.wasteful());
+            }
+        }
+        assert!(reaching > 10, "{reaching} packets reached a leaf");
+        wasteful as f64 / reaching as f64
+    };
+    // 82k triangles, a few pixels each at 1024², several per pixel at 128².
+    let coarse = wasteful_share(128);
+    let fine = wasteful_share(1024);
+    assert!(coarse > 0.5, "{coarse}");
+    assert!(fine < 0.02, "{fine}");
 }
 
 #[test]
