@@ -136,7 +136,14 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
             crate::procedural::to_obj(&crate::procedural::torus(1.0, 0.35, rings, sides), "");
         std::fs::write(&file, text).map_err(|e| format!("{}: {e}", file.display()))?;
         torus_file = Some(file.clone());
+        let small_file = file.clone();
+        let small_name = format!("{name} at {}x{}", width / 6, height / 6);
         scenes.push(Box::new(move || mesh_scene(&name, &file, (width, height))));
+        // The same mesh at a sixth of the resolution: about 17 triangles per pixel, where
+        // packets would waste work and rays go one by one.
+        scenes.push(Box::new(move || {
+            mesh_scene(&small_name, &small_file, (width / 6, height / 6))
+        }));
     }
     if let Some(models) = &options.models {
         for model in ["stanford-bunny", "nefertiti", "ogre"] {

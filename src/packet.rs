@@ -50,10 +50,10 @@ thread_local! {
 }
 
 /// Groups of rays traced one by one after a wasteful packet before a packet is tried
-/// again (neighbouring groups, the render loop's next ones, see the same detail); it
-/// doubles with each wasteful packet in a row, up to [`MOST_SINGLE_AFTER_WASTE`], so that
+/// again (neighbouring groups, the render loop's next ones, often see the same detail);
+/// it doubles with each wasteful packet in a row, up to [`MOST_SINGLE_AFTER_WASTE`], so that
 /// an image where packets never pay tries few.
-pub const SINGLE_AFTER_WASTE: u32 = 8;
+pub const SINGLE_AFTER_WASTE: u32 = 2;
 /// The most groups traced one by one between two packets.
 pub const MOST_SINGLE_AFTER_WASTE: u32 = 128;
 
@@ -86,15 +86,15 @@ pub fn record(visits: Visits) {
 impl Visits {
     /// Fewest leaves before [`Visits::wasteful`] judges a packet.
     pub const JUDGED_FROM: u32 = 16;
-    /// Rays per leaf reached below which packets are judged wasteful: about where one
-    /// by one becomes faster (measured on meshes of 82k and 124k triangles seen at
-    /// 64² to 2048² pixels; DEVELOPERS.md, "Performance notes").
-    pub const MIN_ENTRIES_PER_LEAF: u32 = 1;
+    /// Leaves reached per entering ray above which a packet is judged wasteful: where
+    /// tracing one by one becomes about as fast (measured on meshes of 82k, 124k and
+    /// 1M triangles seen at 64² to 2048² pixels; DEVELOPERS.md, "Performance notes").
+    pub const MOST_LEAVES_PER_ENTRY: u32 = 2;
 
     /// Whether so few rays entered the leaves the packet reached that the next rays
     /// nearby are better traced one by one.
     pub fn wasteful(self) -> bool {
-        self.leaves >= Self::JUDGED_FROM && self.entries < self.leaves * Self::MIN_ENTRIES_PER_LEAF
+        self.leaves >= Self::JUDGED_FROM && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
     }
 }
 
@@ -484,11 +484,11 @@ mod tests {
     fn a_wasteful_packet_sends_the_next_groups_one_by_one_for_doubling_spells() {
         let wasteful = Visits {
             leaves: 40,
-            entries: 39,
+            entries: 19,
         };
         let useful = Visits {
             leaves: 40,
-            entries: 40,
+            entries: 20,
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
@@ -505,7 +505,7 @@ mod tests {
         assert_eq!(spell(), 0);
         record(unjudged);
         assert_eq!(spell(), 0);
-        for expected in [8, 16, 32, 64, 128, 128] {
+        for expected in [2, 4, 8, 16, 32, 64, 128, 128] {
             record(wasteful);
             assert_eq!(spell(), expected);
         }
