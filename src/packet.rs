@@ -17,7 +17,7 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, block_test, distance, lanes4, pack, push_sorted, ray_constants, tri_lanes,
+    STACK, block_test, distance, lanes4, pack, push_sorted, ray_constants, slab_test, tri_lanes,
 };
 use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
@@ -28,6 +28,79 @@ const ROWS: usize = PACKET / 8;
 
 /// Stack entries for a leaf carry its parent node and slot (for the leaf's box).
 const SLOT_BITS: u32 = 3;
+
+/// One group of rays' constants, a ray per lane of `V`, as `slab_test!` reads them (with
+/// a leaf's planes broadcast to every lane).
+pub(crate) struct GroupLanes<V> {
+    pub origin: [V; 3],
+    pub inv_dir: [V; 3],
+    pub inv_dir_far: [V; 3],
+    /// Offsets of each axis's near and far planes in a node.
+    pub near: [usize; 3],
+    pub far: [usize; 3],
+}
+
+/// A float32 at `p` in all eight lanes.
+///
+/// # Safety
+/// `p` must be valid to read; only from a function with AVX2 enabled.
+#[inline(always)]
+pub(crate) unsafe fn broadcast_ps(p: *const f32) -> __m256 {
+    // SAFETY: as required of the caller.
+    unsafe { _mm256_broadcast_ss(&*p) }
+}
+
+/// The stack reference of the leaf in `slot` of node `parent`.
+#[inline(always)]
+pub(crate) fn leaf_entry(parent: u32, slot: usize) -> u32 {
+    LEAF | (parent << SLOT_BITS) | slot as u32
+}
+
+/// The parent node and slot of a [`leaf_entry`].
+#[inline(always)]
+pub(crate) fn leaf_parent(entry: u32) -> (usize, usize) {
+    let parent = (entry & !LEAF) >> SLOT_BITS;
+    (parent as usize, (entry & ((1 << SLOT_BITS) - 1)) as usize)
+}
+
+/// Pushes an entered child's `key`: for `ANY` on top (any order finds a hit as well, so
+/// no sort), otherwise into the run above `base` so the nearest comes off first.
+#[inline(always)]
+pub(crate) fn push_child<const ANY: bool>(
+    stack: &mut [MaybeUninit<u64>],
+    base: usize,
+    sp: &mut usize,
+    key: u64,
+) {
+    if ANY {
+        stack[*sp] = MaybeUninit::new(key);
+        *sp += 1;
+    } else {
+        push_sorted(stack, base, sp, key);
+    }
+}
+
+/// Pops entries until one whose distance is at most `horizon`, and returns its
+/// reference; `None` once the stack is empty.
+///
+/// # Safety
+/// Every slot below `sp` must have been written.
+#[inline(always)]
+pub(crate) unsafe fn pop_within(
+    stack: &[MaybeUninit<u64>],
+    sp: &mut usize,
+    horizon: f32,
+) -> Option<u32> {
+    while *sp > 0 {
+        *sp -= 1;
+        // SAFETY: as required of the caller.
+        let entry = unsafe { stack[*sp].assume_init() };
+        if distance(entry) <= horizon {
+            return Some(entry as u32);
+        }
+    }
+    None
+}
 
 /// What one packet's traversal visited: how well its rays shared the work.
 ///
@@ -284,54 +357,37 @@ unsafe fn trace<const ANY: bool>(
                     } else {
                         let (first, count) = leaf_range(child);
                         prefetch(blocks.as_ptr().wrapping_add(first as usize), count as usize);
-                        LEAF | (current << SLOT_BITS) | i as u32
+                        leaf_entry(current, i)
                     };
-                    let key = pack(entries[i], reference);
-                    if ANY {
-                        // Any order finds a hit as well; skip the sort.
-                        stack[sp] = MaybeUninit::new(key);
-                        sp += 1;
-                        continue;
-                    }
-                    push_sorted(&mut stack, base, &mut sp, key);
+                    push_child::<ANY>(&mut stack, base, &mut sp, pack(entries[i], reference));
                 }
             }
         } else {
             // A leaf: its box against every ray, then each entering ray's own triangle tests.
-            let parent = (current & !LEAF) >> SLOT_BITS;
-            let slot = (current & ((1 << SLOT_BITS) - 1)) as usize;
-            let node = &nodes[parent as usize];
-            let plane = |offset: usize| {
-                let (side, axis) = (offset / (3 * WIDTH), offset / WIDTH % 3);
-                _mm256_set1_ps(node.planes[side][axis][slot])
-            };
+            let (parent, slot) = leaf_parent(current);
+            let node = &nodes[parent];
+            let planes = node.planes.as_ptr().cast::<f32>();
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             visits.leaves += 1;
             for r in 0..ROWS {
                 // SAFETY: rows are 32-byte aligned arrays of eight floats.
                 let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
-                let slab = |offset: usize, a: usize, inv: &[Rows; 3]| {
-                    _mm256_mul_ps(
-                        _mm256_sub_ps(plane(offset), lane(&origin[a])),
-                        lane(&inv[a]),
-                    )
+                let group = GroupLanes {
+                    origin: origin.each_ref().map(lane),
+                    inv_dir: inv.each_ref().map(lane),
+                    inv_dir_far: inv_far.each_ref().map(lane),
+                    near,
+                    far,
                 };
-                let enter = _mm256_max_ps(
-                    slab(near[0], 0, &inv),
-                    _mm256_max_ps(
-                        slab(near[1], 1, &inv),
-                        _mm256_max_ps(slab(near[2], 2, &inv), lane(&tmin)),
-                    ),
-                );
-                let exit = _mm256_min_ps(
-                    slab(far[0], 0, &inv_far),
-                    _mm256_min_ps(
-                        slab(far[1], 1, &inv_far),
-                        _mm256_min_ps(slab(far[2], 2, &inv_far), lane(&t_box)),
-                    ),
-                );
-                let mut hits = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+                // The single-ray test, the leaf's box against eight rays.
+                // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
+                let (_, entered) = unsafe {
+                    slab_test! { &group, planes, slot, lane(&tmin), lane(&t_box),
+                    broadcast_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps,
+                    _mm256_cmp_ps }
+                };
+                let mut hits = _mm256_movemask_ps(entered) as u32;
                 visits.entries += hits.count_ones();
                 while hits != 0 {
                     let k = r * 8 + hits.trailing_zeros() as usize;
@@ -381,25 +437,23 @@ unsafe fn trace<const ANY: bool>(
             }
         }
         // The next entry that some ray may still need.
-        loop {
-            if sp == 0 || (ANY && live == 0) {
-                if !ANY {
-                    for k in 0..n {
-                        if let Some(hit) = found[k] {
-                            closest(k, nearest[k], hit);
-                        }
+        // SAFETY: every slot below `sp` was written above.
+        let next = if ANY && live == 0 {
+            None
+        } else {
+            unsafe { pop_within(&stack, &mut sp, packet_tmax) }
+        };
+        let Some(next) = next else {
+            if !ANY {
+                for k in 0..n {
+                    if let Some(hit) = found[k] {
+                        closest(k, nearest[k], hit);
                     }
                 }
-                return Some(visits);
             }
-            sp -= 1;
-            // SAFETY: every slot below `sp` was written above.
-            let entry = unsafe { stack[sp].assume_init() };
-            if distance(entry) <= packet_tmax {
-                current = entry as u32;
-                break;
-            }
-        }
+            return Some(visits);
+        };
+        current = next;
     }
 }
 

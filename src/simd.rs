@@ -210,6 +210,7 @@ macro_rules! slab_test {
         (enter, $cmp::<_CMP_LE_OQ>(enter, exit))
     }};
 }
+pub(crate) use slab_test;
 
 /// The slab test of all eight children: a hit bit per child and the entry distances.
 /// Operand order matters: `max(a, b)` returns `b` when `a` is NaN, as the scalar test's

@@ -13,17 +13,16 @@
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, f32_at_most, leaf_range};
-use crate::packet::{Bound, PACKET, corner_bound};
+use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, f32_at_least, f32_at_most, leaf_range};
+use crate::packet::{
+    Bound, GroupLanes, PACKET, corner_bound, leaf_entry, leaf_parent, pop_within, push_child,
+};
 use crate::ray::Ray;
-use crate::simd::{STACK, distance, pack, push_sorted};
+use crate::simd::{STACK, pack, slab_test};
 use crate::sphere::Sphere;
 
 /// Groups of four rays (one float64 lane each).
 const GROUPS: usize = PACKET / 4;
-
-/// Stack entries for a leaf carry its parent node and slot (for the leaf's box).
-const SLOT_BITS: u32 = 3;
 
 /// One ray per lane, four rays per group.
 #[repr(C, align(32))]
@@ -41,6 +40,16 @@ impl Groups {
         // SAFETY: groups are 32-byte aligned arrays of four doubles.
         unsafe { _mm256_load_pd(self.0[g].as_ptr()) }
     }
+}
+
+/// A float64 at `p` in all four lanes.
+///
+/// # Safety
+/// `p` must be valid to read; only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn broadcast_pd(p: *const f64) -> __m256d {
+    // SAFETY: as required of the caller.
+    unsafe { _mm256_broadcast_sd(&*p) }
 }
 
 /// Closest sphere hits of up to [`PACKET`] rays traced together, ray `k` looking for
@@ -206,56 +215,37 @@ unsafe fn trace<const ANY: bool>(
                 let reference = if child & LEAF == 0 {
                     child
                 } else {
-                    LEAF | (current << SLOT_BITS) | i as u32
+                    leaf_entry(current, i)
                 };
                 // Rounded down, so the stack's order and the pop test stay conservative.
                 let key = pack(f32_at_most(entries[i]), reference);
-                if ANY {
-                    // Any order finds a hit as well; skip the sort.
-                    stack[sp] = MaybeUninit::new(key);
-                    sp += 1;
-                } else {
-                    push_sorted(&mut stack, base, &mut sp, key);
-                }
+                push_child::<ANY>(&mut stack, base, &mut sp, key);
             }
         } else {
             // A leaf: its box against every ray, then each entering ray's spheres.
-            let parent = (current & !LEAF) >> SLOT_BITS;
-            let slot = (current & ((1 << SLOT_BITS) - 1)) as usize;
-            let node = &nodes[parent as usize];
-            let plane = |offset: usize| {
-                let (side, axis) = (offset / (3 * WIDTH), offset / WIDTH % 3);
-                _mm256_set1_pd(node.planes[side][axis][slot])
-            };
+            let (parent, slot) = leaf_parent(current);
+            let node = &nodes[parent];
+            let planes = node.planes.as_ptr().cast::<f64>();
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             for g in 0..GROUPS {
-                // SAFETY (for the loads): AVX2 is enabled in this function.
-                let slab = |offset: usize, a: usize, inv: &[Groups; 3]| unsafe {
-                    _mm256_mul_pd(
-                        _mm256_sub_pd(plane(offset), origin[a].load(g)),
-                        inv[a].load(g),
-                    )
-                };
-                // The single-ray test's operations in its order (`max(a, b)` is `b` for a
-                // NaN `a`, as its `max_keep` is).
                 // SAFETY: AVX2 is enabled in this function.
-                let (t_lo, t_hi) = unsafe { (tmin.load(g), horizon.load(g)) };
-                let enter = _mm256_max_pd(
-                    slab(near[0], 0, &inv),
-                    _mm256_max_pd(
-                        slab(near[1], 1, &inv),
-                        _mm256_max_pd(slab(near[2], 2, &inv), t_lo),
-                    ),
-                );
-                let exit = _mm256_min_pd(
-                    slab(far[0], 0, &inv_far),
-                    _mm256_min_pd(
-                        slab(far[1], 1, &inv_far),
-                        _mm256_min_pd(slab(far[2], 2, &inv_far), t_hi),
-                    ),
-                );
-                let mut hits = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit)) as u32;
+                let lane = |groups: &Groups| unsafe { groups.load(g) };
+                let group = GroupLanes {
+                    origin: origin.each_ref().map(lane),
+                    inv_dir: inv.each_ref().map(lane),
+                    inv_dir_far: inv_far.each_ref().map(lane),
+                    near,
+                    far,
+                };
+                // The single-ray test, the leaf's box against four rays.
+                // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 doubles.
+                let (_, entered) = unsafe {
+                    slab_test! { &group, planes, slot, lane(&tmin), lane(&horizon),
+                    broadcast_pd, _mm256_sub_pd, _mm256_mul_pd, _mm256_max_pd, _mm256_min_pd,
+                    _mm256_cmp_pd }
+                };
+                let mut hits = _mm256_movemask_pd(entered) as u32;
                 while hits != 0 {
                     let l = hits.trailing_zeros() as usize;
                     hits &= hits - 1;
@@ -290,25 +280,24 @@ unsafe fn trace<const ANY: bool>(
                 packet_tmax = lanes.into_iter().fold(f64::NEG_INFINITY, f64::max);
             }
         }
-        // The next entry that some ray may still need.
-        loop {
-            if sp == 0 || (ANY && live == 0) {
-                if !ANY {
-                    for (k, &i) in nearest[..n].iter().enumerate() {
-                        if i != u32::MAX {
-                            found(k, horizon.0[k / 4][k % 4], i);
-                        }
+        // The next entry that some ray may still need: rounded up, the horizon keeps
+        // every entry a ray may need (rounded down when pushed).
+        // SAFETY: every slot below `sp` was written above.
+        let next = if ANY && live == 0 {
+            None
+        } else {
+            unsafe { pop_within(&stack, &mut sp, f32_at_least(packet_tmax)) }
+        };
+        let Some(next) = next else {
+            if !ANY {
+                for (k, &i) in nearest[..n].iter().enumerate() {
+                    if i != u32::MAX {
+                        found(k, horizon.0[k / 4][k % 4], i);
                     }
                 }
-                return true;
             }
-            sp -= 1;
-            // SAFETY: every slot below `sp` was written above.
-            let entry = unsafe { stack[sp].assume_init() };
-            if f64::from(distance(entry)) <= packet_tmax {
-                current = entry as u32;
-                break;
-            }
-        }
+            return true;
+        };
+        current = next;
     }
 }
