@@ -107,7 +107,15 @@ impl SceneGeometry {
 
     /// Places the triangles of every source, in order, after those already placed;
     /// `manifest` is the one the sources were loaded from (errors name its files).
+    ///
+    /// # Panics
+    /// If `manifest` has another number of meshes than there are sources.
     pub fn place_triangles(&mut self, manifest: &Manifest) -> Result<(), Error> {
+        assert_eq!(
+            manifest.meshes.len(),
+            self.sources.len(),
+            "the manifest the sources were loaded from"
+        );
         let sources = std::mem::take(&mut self.sources);
         let placed = sources
             .iter()
