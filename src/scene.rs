@@ -982,12 +982,12 @@ impl TriangleTree {
         self.bvh.stack_bound() <= SIMD_STACK
     }
 
-    /// Bytes of blocks, tree nodes and hint roots.
     /// The triangle blocks in leaf order (for inspection and tests).
     pub fn blocks(&self) -> &[TriangleBlock] {
         &self.blocks
     }
 
+    /// Bytes of blocks, tree nodes and hint roots.
     pub fn memory_bytes(&self) -> usize {
         self.blocks.len() * (std::mem::size_of::<TriangleBlock>() + std::mem::size_of::<u32>())
             + self.bvh.memory_bytes()
