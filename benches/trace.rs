@@ -1,13 +1,17 @@
 //! Trace throughput on procedural scenes (no downloads): closest-hit and any-hit camera
-//! rays through a torus mesh, and a whole render of the canonical scene.
+//! rays through a torus mesh; and, in the `packets` groups, batches of 64 neighbouring
+//! camera rays (`Scene::closest_hits`) paced, always as packets, and ray by ray, on an
+//! 82k-triangle icosphere and a 10,000-sphere field at a low and a high resolution.
 //!
 //!     cargo bench --bench trace
+//!     cargo bench --bench trace -- packets
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DMat4, DVec3};
 use raybatch::camera::{Camera, look_at_frame};
 use raybatch::manifest::CameraDesc;
 use raybatch::mesh::{Instance, MeshFile};
+use raybatch::sphere::Sphere;
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry, procedural};
 use std::sync::Arc;
 
@@ -62,5 +66,92 @@ fn trace(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, trace);
+/// Camera rays of a `size` × `size` view from `eye` toward the origin (90° field), in
+/// 8 × 8 tiles of neighbouring pixels, as the renderer groups them.
+fn tiled_rays(eye: DVec3, size: u32) -> Vec<Ray> {
+    let frame = look_at_frame(eye, DVec3::ZERO, DVec3::Y, 90.0).unwrap();
+    let camera = Camera::new(&CameraDesc { frame, lens: None }, size, size);
+    let mut pixels: Vec<(u32, u32)> = (0..size)
+        .flat_map(|y| (0..size).map(move |x| (x, y)))
+        .collect();
+    pixels.sort_by_key(|&(x, y)| (y / 8, x / 8, y % 8, x % 8));
+    pixels
+        .into_iter()
+        .map(|(x, y)| camera.ray(x, y, 0.5, 0.5, (0.5, 0.5)))
+        .collect()
+}
+
+/// `closest_hits` in groups of 64 (paced, then always as packets) against `closest_hit`
+/// ray by ray.
+fn batch_against_single(c: &mut Criterion, name: &str, scene: &mut Scene, rays: &[Ray]) {
+    let mut out = vec![None; rays.len()];
+    let mut group = c.benchmark_group(name);
+    group.throughput(Throughput::Elements(rays.len() as u64));
+    group.sample_size(20);
+    for (label, adaptive) in [("batch-paced", true), ("batch-always-packets", false)] {
+        scene.set_adaptive_packets(adaptive);
+        group.bench_function(label, |b| {
+            b.iter(|| {
+                for (rays, out) in rays.chunks(64).zip(out.chunks_mut(64)) {
+                    scene.closest_hits(rays, out);
+                }
+            })
+        });
+    }
+    scene.set_adaptive_packets(true);
+    group.bench_function("single", |b| {
+        b.iter(|| {
+            rays.iter()
+                .filter(|r| scene.closest_hit(r).is_some())
+                .count()
+        })
+    });
+    group.finish();
+}
+
+fn packets(c: &mut Criterion) {
+    let mesh = Arc::new(MeshFile {
+        geometries: vec![procedural::icosphere(6)],
+        instances: vec![Instance {
+            geometry: 0,
+            transform: DMat4::IDENTITY,
+        }],
+        warnings: Vec::new(),
+    });
+    let mut geometry = SceneGeometry::default();
+    geometry
+        .add_mesh(&mesh, DMat4::IDENTITY, "icosphere".as_ref())
+        .unwrap();
+    let mut scene = Scene::build(&geometry);
+    let eye = DVec3::new(1.5, 0.9, 1.5);
+    for size in [128, 1024] {
+        let name = format!("packets/icosphere-82k-{size}");
+        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size));
+    }
+
+    let mut state = 12345u64;
+    let mut next = move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let spheres = (0..10_000)
+        .map(|_| Sphere {
+            center: DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 20.0,
+            radius: 0.05 + 0.25 * next(),
+        })
+        .collect();
+    let mut scene = Scene::build(&SceneGeometry {
+        spheres,
+        ..SceneGeometry::default()
+    });
+    for size in [64, 1024] {
+        let name = format!("packets/spheres-10k-{size}");
+        let rays = tiled_rays(DVec3::new(8.0, 12.0, 30.0) * 0.6, size);
+        batch_against_single(c, &name, &mut scene, &rays);
+    }
+}
+
+criterion_group!(benches, trace, packets);
 criterion_main!(benches);

@@ -170,17 +170,22 @@ impl Batch {
         self.tree_builds
     }
 
-    /// The scene of `geometry`, around the previous job's triangle tree if it has the
-    /// same triangles (which may then be left unplaced).
-    fn build_scene(&mut self, geometry: &SceneGeometry, report: &mut JobReport) -> Scene {
+    /// The scene of `geometry`: around `reused` (the previous job's triangle tree, when
+    /// it has the same triangles, which may then be left unplaced), or with a new tree.
+    fn build_scene(
+        &mut self,
+        geometry: &SceneGeometry,
+        reused: Option<Arc<TriangleTree>>,
+        report: &mut JobReport,
+    ) -> Scene {
         let preset = BuildPreset::default();
-        if geometry.triangles.is_empty() && geometry.source_triangle_count() == 0 {
-            // Nothing to build, and the last tree stays for the jobs after this one.
-            return Scene::build_with(geometry, preset);
-        }
-        if let Some(tree) = self.reusable_tree(geometry) {
+        if let Some(tree) = reused {
             report.triangle_tree_reused = true;
             return Scene::build_around(geometry, preset, tree);
+        }
+        if geometry.triangles.is_empty() {
+            // Nothing to build, and the last tree stays for the jobs after this one.
+            return Scene::build_with(geometry, preset);
         }
         // Drop the old tree before building the new one, so two are never held at once.
         self.last_tree = None;
@@ -237,16 +242,18 @@ impl Batch {
 
         let mut geometry = SceneGeometry::load_unplaced(&manifest, &mut self.meshes)?;
         // Triangles the previous job's tree was built from need no placing again.
-        let reuse =
-            self.options.backend == Backend::Raybatch && self.reusable_tree(&geometry).is_some();
-        if !reuse {
+        let reused = match self.options.backend {
+            Backend::Raybatch => self.reusable_tree(&geometry),
+            Backend::Embree => None,
+        };
+        if reused.is_none() {
             geometry.place_triangles(&manifest)?;
         }
         report.warnings = geometry.warnings.clone();
         report.load_s = start.elapsed().as_secs_f64();
         match self.options.backend {
             Backend::Raybatch => finish(
-                |g, report| Ok(self.build_scene(g, report)),
+                |g, report| Ok(self.build_scene(g, reused, report)),
                 geometry,
                 &manifest,
                 &output,

@@ -160,8 +160,8 @@ impl Visits {
     /// Fewest leaves before [`Visits::wasteful`] judges a packet.
     pub const JUDGED_FROM: u32 = 16;
     /// Leaves reached per entering ray above which a packet is judged wasteful: where
-    /// tracing one by one becomes about as fast (measured on meshes of 82k, 124k and
-    /// 1M triangles seen at 64² to 2048² pixels; DEVELOPERS.md, "Performance notes").
+    /// tracing one by one becomes about as fast (`cargo bench --bench trace -- packets`
+    /// and the full-HD torus of `raybatch bench`; DEVELOPERS.md, "Performance notes").
     pub const MOST_LEAVES_PER_ENTRY: u32 = 2;
 
     /// Whether so few rays entered the leaves the packet reached that the next rays

@@ -132,12 +132,17 @@ impl SceneGeometry {
         placed
     }
 
-    /// Triangles the sources hold (placed or not).
-    pub fn source_triangle_count(&self) -> usize {
-        self.sources
-            .iter()
-            .map(|(mesh, _)| mesh.triangle_count())
-            .sum()
+    /// Triangles of the geometry, placed or not: those placed, or when none are, those its
+    /// sources hold ([`SceneGeometry::load_unplaced`]).
+    pub fn triangle_count(&self) -> usize {
+        if self.triangles.is_empty() {
+            self.sources
+                .iter()
+                .map(|(mesh, _)| mesh.triangle_count())
+                .sum()
+        } else {
+            self.triangles.len()
+        }
     }
 
     /// Places every instance of `mesh` with `transform` applied after the file's own.
@@ -315,12 +320,11 @@ impl Scene {
         let SceneGeometry {
             spheres, planes, ..
         } = geometry;
-        let count = if geometry.triangles.is_empty() {
-            geometry.source_triangle_count()
-        } else {
-            geometry.triangles.len()
-        };
-        assert_eq!(triangles.len, count, "another scene's tree");
+        assert_eq!(
+            triangles.len,
+            geometry.triangle_count(),
+            "another scene's tree"
+        );
         let (sphere_order, sphere_ids, sphere_bvh) = build_spheres(spheres, preset);
 
         let counts = SceneCounts {
