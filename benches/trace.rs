@@ -10,14 +10,14 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DMat4, DVec3};
 use raybatch::camera::{Camera, look_at_frame};
 use raybatch::manifest::CameraDesc;
-use raybatch::mesh::{Instance, MeshFile};
-use raybatch::sphere::Sphere;
+use raybatch::mesh::{Geometry, Instance, MeshFile};
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry, procedural};
 use std::sync::Arc;
 
-fn torus_scene(rings: u32, sides: u32) -> Scene {
+/// The scene of one procedural mesh, placed as it is.
+fn mesh_scene(mesh: Geometry) -> Scene {
     let mesh = Arc::new(MeshFile {
-        geometries: vec![procedural::torus(1.0, 0.35, rings, sides)],
+        geometries: vec![mesh],
         instances: vec![Instance {
             geometry: 0,
             transform: DMat4::IDENTITY,
@@ -26,7 +26,7 @@ fn torus_scene(rings: u32, sides: u32) -> Scene {
     });
     let mut geometry = SceneGeometry::default();
     geometry
-        .add_mesh(&mesh, DMat4::IDENTITY, "torus".as_ref())
+        .add_mesh(&mesh, DMat4::IDENTITY, "procedural".as_ref())
         .unwrap();
     Scene::build(&geometry)
 }
@@ -41,7 +41,7 @@ fn camera_rays(width: u32, height: u32) -> Vec<Ray> {
 }
 
 fn trace(c: &mut Criterion) {
-    let scene = torus_scene(400, 250);
+    let scene = mesh_scene(procedural::torus(1.0, 0.35, 400, 250));
     let rays = camera_rays(320, 180);
     let mut group = c.benchmark_group("torus-200k");
     group.throughput(Throughput::Elements(rays.len() as u64));
@@ -110,40 +110,15 @@ fn batch_against_single(c: &mut Criterion, name: &str, scene: &mut Scene, rays: 
 }
 
 fn packets(c: &mut Criterion) {
-    let mesh = Arc::new(MeshFile {
-        geometries: vec![procedural::icosphere(6)],
-        instances: vec![Instance {
-            geometry: 0,
-            transform: DMat4::IDENTITY,
-        }],
-        warnings: Vec::new(),
-    });
-    let mut geometry = SceneGeometry::default();
-    geometry
-        .add_mesh(&mesh, DMat4::IDENTITY, "icosphere".as_ref())
-        .unwrap();
-    let mut scene = Scene::build(&geometry);
+    let mut scene = mesh_scene(procedural::icosphere(6));
     let eye = DVec3::new(1.5, 0.9, 1.5);
     for size in [128, 1024] {
         let name = format!("packets/icosphere-82k-{size}");
         batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size));
     }
 
-    let mut state = 12345u64;
-    let mut next = move || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (state >> 11) as f64 / (1u64 << 53) as f64
-    };
-    let spheres = (0..10_000)
-        .map(|_| Sphere {
-            center: DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 20.0,
-            radius: 0.05 + 0.25 * next(),
-        })
-        .collect();
     let mut scene = Scene::build(&SceneGeometry {
-        spheres,
+        spheres: raybatch::bench::scattered_spheres(10_000),
         ..SceneGeometry::default()
     });
     for size in [64, 1024] {

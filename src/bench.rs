@@ -232,8 +232,9 @@ fn mesh_scene(name: &str, file: &Path, size: (u32, u32)) -> Result<TraceScene, S
     })
 }
 
-/// `count` spheres of varied sizes scattered in a cube, seen from outside.
-fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
+/// `count` spheres of radius 0.05 to 0.3 scattered in the cube of side 20 around the
+/// origin, the same every time (a fixed seed): the bench's sphere field.
+pub fn scattered_spheres(count: usize) -> Vec<Sphere> {
     let mut state = 12345u64;
     let mut next = move || {
         state = state
@@ -241,12 +242,17 @@ fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
             .wrapping_add(1442695040888963407);
         (state >> 11) as f64 / (1u64 << 53) as f64
     };
-    let spheres = (0..count)
+    (0..count)
         .map(|_| Sphere {
             center: DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 20.0,
             radius: 0.05 + 0.25 * next(),
         })
-        .collect();
+        .collect()
+}
+
+/// `count` spheres of varied sizes scattered in a cube, seen from outside.
+fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
+    let spheres = scattered_spheres(count);
     TraceScene {
         name: format!("spheres-{}k", count / 1000),
         geometry: SceneGeometry {
