@@ -116,10 +116,46 @@ pub struct Visits {
     pub entries: u32,
 }
 
+impl Visits {
+    /// Fewest leaves before [`Visits::wasteful`] judges a packet.
+    pub const JUDGED_FROM: u32 = 16;
+
+    /// Whether so few rays entered the leaves the packet reached through `tree` that the
+    /// next rays nearby are better traced one by one: more leaves per entering ray than
+    /// [`PacedTree::most_leaves_per_entry`].
+    pub fn wasteful(self, tree: PacedTree) -> bool {
+        self.leaves >= Self::JUDGED_FROM
+            && self.leaves > tree.most_leaves_per_entry() * self.entries
+    }
+}
+
+/// A tree that packets cross, each with its own pacing: a thread's sphere packets may
+/// pay where its triangle packets do not.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PacedTree {
+    Triangles,
+    Spheres,
+}
+
+impl PacedTree {
+    /// Leaves reached per entering ray above which a packet is judged wasteful: where
+    /// tracing one by one becomes about as fast (`cargo bench --bench trace -- packets`
+    /// and the full-HD torus of `raybatch bench`; DEVELOPERS.md, "Performance notes").
+    /// A sphere leaf's test is cheaper than a triangle leaf's, so packets through spheres
+    /// lose sooner.
+    pub fn most_leaves_per_entry(self) -> u32 {
+        match self {
+            PacedTree::Triangles => 2,
+            PacedTree::Spheres => 1,
+        }
+    }
+}
+
 thread_local! {
-    /// This thread's pacing of packets: groups of rays still to trace one by one, and how
-    /// many the next wasteful packet sends one by one.
-    static PACING: Cell<(u32, u32)> = const { Cell::new((0, SINGLE_AFTER_WASTE)) };
+    /// This thread's pacing of packets per [`PacedTree`]: groups of rays still to trace
+    /// one by one, and how many the next wasteful packet sends one by one.
+    static PACING: [Cell<(u32, u32)>; 2] =
+        const { [Cell::new((0, SINGLE_AFTER_WASTE)), Cell::new((0, SINGLE_AFTER_WASTE))] };
 }
 
 /// Groups of rays traced one by one after a wasteful packet before a packet is tried
@@ -130,45 +166,32 @@ pub const SINGLE_AFTER_WASTE: u32 = 2;
 /// The most groups traced one by one between two packets.
 pub const MOST_SINGLE_AFTER_WASTE: u32 = 128;
 
-/// Whether this thread's next group of rays should be tried as a packet: not for a while
-/// after a [`wasteful`](Visits::wasteful) one. Either way gives the same hits; this only
-/// picks the faster.
-pub fn worth_trying() -> bool {
+/// Whether this thread's next group of rays should be tried as a packet through `tree`:
+/// not for a while after a [`wasteful`](Visits::wasteful) one. Either way gives the same
+/// hits; this only picks the faster.
+pub fn worth_trying(tree: PacedTree) -> bool {
     PACING.with(|pacing| {
+        let pacing = &pacing[tree as usize];
         let (left, next) = pacing.get();
         pacing.set((left.saturating_sub(1), next));
         left == 0
     })
 }
 
-/// Records what a packet visited, for [`worth_trying`].
-pub fn record(visits: Visits) {
+/// Records what a packet through `tree` visited, for [`worth_trying`].
+pub fn record(tree: PacedTree, visits: Visits) {
     if visits.leaves < Visits::JUDGED_FROM {
         return;
     }
     PACING.with(|pacing| {
+        let pacing = &pacing[tree as usize];
         let (_, next) = pacing.get();
-        pacing.set(if visits.wasteful() {
+        pacing.set(if visits.wasteful(tree) {
             (next, (2 * next).min(MOST_SINGLE_AFTER_WASTE))
         } else {
             (0, SINGLE_AFTER_WASTE)
         });
     });
-}
-
-impl Visits {
-    /// Fewest leaves before [`Visits::wasteful`] judges a packet.
-    pub const JUDGED_FROM: u32 = 16;
-    /// Leaves reached per entering ray above which a packet is judged wasteful: where
-    /// tracing one by one becomes about as fast (`cargo bench --bench trace -- packets`
-    /// and the full-HD torus of `raybatch bench`; DEVELOPERS.md, "Performance notes").
-    pub const MOST_LEAVES_PER_ENTRY: u32 = 2;
-
-    /// Whether so few rays entered the leaves the packet reached that the next rays
-    /// nearby are better traced one by one.
-    pub fn wasteful(self) -> bool {
-        self.leaves >= Self::JUDGED_FROM && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
-    }
 }
 
 /// One ray per lane, eight rays per row.
@@ -536,38 +559,51 @@ mod tests {
 
     #[test]
     fn a_wasteful_packet_sends_the_next_groups_one_by_one_for_doubling_spells() {
-        let wasteful = Visits {
+        // Just over and just at each tree's most leaves per entering ray.
+        let wasteful = |tree: PacedTree| Visits {
             leaves: 40,
-            entries: 19,
+            entries: 40 / tree.most_leaves_per_entry() - 1,
         };
-        let useful = Visits {
+        let useful = |tree: PacedTree| Visits {
             leaves: 40,
-            entries: 20,
+            entries: 40 / tree.most_leaves_per_entry(),
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
         };
-        assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
+        for tree in [PacedTree::Triangles, PacedTree::Spheres] {
+            assert!(wasteful(tree).wasteful(tree));
+            assert!(!useful(tree).wasteful(tree) && !unjudged.wasteful(tree));
+        }
+        // The same visits may be wasteful through spheres and not through triangles.
+        assert!(!wasteful(PacedTree::Spheres).wasteful(PacedTree::Triangles));
         // Each test runs on its own thread: the pacing starts fresh.
-        let spell = || {
-            let single = std::iter::repeat_with(worth_trying)
+        let spell = |tree| {
+            let single = std::iter::repeat_with(|| worth_trying(tree))
                 .take_while(|&packet| !packet)
                 .count();
             single as u32
         };
-        assert_eq!(spell(), 0);
-        record(unjudged);
-        assert_eq!(spell(), 0);
-        for expected in [2, 4, 8, 16, 32, 64, 128, 128] {
-            record(wasteful);
-            assert_eq!(spell(), expected);
+        for (tree, other) in [
+            (PacedTree::Triangles, PacedTree::Spheres),
+            (PacedTree::Spheres, PacedTree::Triangles),
+        ] {
+            assert_eq!(spell(tree), 0);
+            record(tree, unjudged);
+            assert_eq!(spell(tree), 0);
+            for expected in [2, 4, 8, 16, 32, 64, 128, 128] {
+                record(tree, wasteful(tree));
+                // The other tree's packets are still tried.
+                assert_eq!(spell(other), 0);
+                assert_eq!(spell(tree), expected);
+            }
+            // A useful packet ends the doubling; a packet reaching few leaves says nothing.
+            record(tree, useful(tree));
+            assert_eq!(spell(tree), 0);
+            record(tree, wasteful(tree));
+            record(tree, unjudged);
+            assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
         }
-        // A useful packet ends the doubling; a packet reaching few leaves says nothing.
-        record(useful);
-        assert_eq!(spell(), 0);
-        record(wasteful);
-        record(unjudged);
-        assert_eq!(spell(), SINGLE_AFTER_WASTE);
     }
 }

@@ -287,7 +287,7 @@ pub struct Scene {
     avx2: bool,
     /// Whether coherent rays meet the spheres as packets: AVX2, and the stack fits.
     sphere_packets: bool,
-    /// Whether triangle packets are skipped for a while after a wasteful one
+    /// Whether packets through a tree are skipped for a while after a wasteful one
     /// ([`crate::packet::worth_trying`]); off, every eligible group is a packet.
     adaptive_packets: bool,
     counts: SceneCounts,
@@ -383,16 +383,17 @@ impl Scene {
         self.sphere_packets
     }
 
-    /// With `false`, every group of rays that can be a triangle packet is one, even after
-    /// wasteful packets (for tests of the packet path; the hits are the same either way).
+    /// With `false`, every group of rays that can be a packet is one, through the triangles
+    /// and the spheres, even after wasteful packets (for tests and benches of the packet
+    /// paths; the hits are the same either way).
     pub fn set_adaptive_packets(&mut self, on: bool) {
         self.adaptive_packets = on;
     }
 
-    /// Whether to try the next group of rays as a triangle packet.
+    /// Whether to try the next group of rays as a packet through `tree`.
     #[cfg(target_arch = "x86_64")]
-    fn packet_worth_trying(&self) -> bool {
-        !self.adaptive_packets || crate::packet::worth_trying()
+    fn packet_worth_trying(&self, tree: PacedTree) -> bool {
+        !self.adaptive_packets || crate::packet::worth_trying(tree)
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -480,9 +481,9 @@ impl Scene {
             return;
         }
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack fits.
-        if self.sphere_packets
-            && unsafe {
+        if self.sphere_packets && self.packet_worth_trying(PacedTree::Spheres) {
+            // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack fits.
+            let visits = unsafe {
                 crate::sphere_packet::closest(
                     &self.sphere_bvh,
                     &self.spheres,
@@ -490,9 +491,11 @@ impl Scene {
                     tmax,
                     |k, t, position| out[k] = Some(self.sphere_hit(t, position)),
                 )
+            };
+            if let Some(visits) = visits {
+                crate::packet::record(PacedTree::Spheres, visits);
+                return;
             }
-        {
-            return;
         }
         for (k, ray) in rays.iter().enumerate() {
             if let Some(hit) = self.closest_sphere(ray, tmax[k]) {
@@ -524,7 +527,7 @@ impl Scene {
             }
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
-            if self.simd && self.packet_worth_trying() {
+            if self.simd && self.packet_worth_trying(PacedTree::Triangles) {
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
                 let visits = unsafe {
                     crate::packet::closest(
@@ -535,7 +538,7 @@ impl Scene {
                     )
                 };
                 if let Some(visits) = visits {
-                    crate::packet::record(visits);
+                    crate::packet::record(PacedTree::Triangles, visits);
                     continue;
                 }
             }
@@ -570,7 +573,7 @@ impl Scene {
                 continue;
             }
             #[cfg(target_arch = "x86_64")]
-            if self.simd && self.packet_worth_trying() {
+            if self.simd && self.packet_worth_trying(PacedTree::Triangles) {
                 let mut prepared = [TriangleRay::EMPTY; PACKET];
                 for (k, ray) in rays.iter().enumerate() {
                     // A ray already hit needs no triangle: an empty interval.
@@ -589,7 +592,7 @@ impl Scene {
                     )
                 };
                 if let Some(visits) = visits {
-                    crate::packet::record(visits);
+                    crate::packet::record(PacedTree::Triangles, visits);
                     for (out, hit) in out.iter_mut().zip(triangles) {
                         *out |= hit;
                     }
@@ -702,7 +705,7 @@ impl Scene {
             return;
         }
         #[cfg(target_arch = "x86_64")]
-        if self.sphere_packets {
+        if self.sphere_packets && self.packet_worth_trying(PacedTree::Spheres) {
             let mut tmax = [0f64; PACKET];
             for (k, ray) in rays.iter().enumerate() {
                 // A ray already hit needs no sphere: an empty interval.
@@ -710,7 +713,7 @@ impl Scene {
             }
             // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack
             // fits.
-            if unsafe {
+            let visits = unsafe {
                 crate::sphere_packet::any(
                     &self.sphere_bvh,
                     &self.spheres,
@@ -718,7 +721,9 @@ impl Scene {
                     &tmax[..rays.len()],
                     |k, _, _| out[k] = true,
                 )
-            } {
+            };
+            if let Some(visits) = visits {
+                crate::packet::record(PacedTree::Spheres, visits);
                 return;
             }
         }
@@ -878,7 +883,7 @@ impl Tracer for Scene {
 }
 
 #[cfg(target_arch = "x86_64")]
-use crate::packet::PACKET;
+use crate::packet::{PACKET, PacedTree};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::{STACK as SIMD_STACK, available as simd_available};
 #[cfg(not(target_arch = "x86_64"))]

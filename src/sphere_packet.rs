@@ -15,7 +15,8 @@ use std::mem::MaybeUninit;
 
 use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, f32_at_least, f32_at_most, leaf_range};
 use crate::packet::{
-    Bound, GroupLanes, PACKET, corner_bound, leaf_entry, leaf_parent, pop_within, push_child,
+    Bound, GroupLanes, PACKET, Visits, corner_bound, leaf_entry, leaf_parent, pop_within,
+    push_child,
 };
 use crate::ray::Ray;
 use crate::simd::{STACK, pack, slab_test};
@@ -54,8 +55,9 @@ unsafe fn broadcast_pd(p: *const f64) -> __m256d {
 
 /// Closest sphere hits of up to [`PACKET`] rays traced together, ray `k` looking for
 /// `rays[k].tmin < t < tmax[k]`: `found(k, t, position)` is called for each ray with a
-/// hit, `position` indexing `spheres` (the tree's leaf order). Returns `false`, calling
-/// nothing, when the rays' directions differ in sign on some axis.
+/// hit, `position` indexing `spheres` (the tree's leaf order). Returns what the traversal
+/// visited, or `None`, calling nothing, when the rays' directions differ in sign on some
+/// axis.
 ///
 /// # Safety
 /// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
@@ -66,7 +68,7 @@ pub unsafe fn closest(
     rays: &[Ray],
     tmax: &[f64],
     found: impl FnMut(usize, f64, u32),
-) -> bool {
+) -> Option<Visits> {
     // SAFETY: as required of the caller.
     unsafe { trace::<false>(bvh, spheres, rays, tmax, found) }
 }
@@ -74,7 +76,8 @@ pub unsafe fn closest(
 /// Whether each of up to [`PACKET`] rays hits a sphere with `rays[k].tmin < t < tmax[k]`,
 /// traced together: `found(k, t, position)` is called for each ray that does, with some
 /// hit (not necessarily the nearest); rays leave the packet at their first hit. Returns
-/// `false`, calling nothing, when the rays' directions differ in sign on some axis.
+/// what the traversal visited, or `None`, calling nothing, when the rays' directions
+/// differ in sign on some axis.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -85,7 +88,7 @@ pub unsafe fn any(
     rays: &[Ray],
     tmax: &[f64],
     found: impl FnMut(usize, f64, u32),
-) -> bool {
+) -> Option<Visits> {
     // SAFETY: as required of the caller.
     unsafe { trace::<true>(bvh, spheres, rays, tmax, found) }
 }
@@ -98,15 +101,16 @@ unsafe fn trace<const ANY: bool>(
     rays: &[Ray],
     tmax: &[f64],
     mut found: impl FnMut(usize, f64, u32),
-) -> bool {
+) -> Option<Visits> {
     assert!(rays.len() <= PACKET && tmax.len() == rays.len());
     assert!(
         bvh.stack_bound() <= STACK,
         "the single-ray path handles deeper trees"
     );
     let n = rays.len();
+    let mut visits = Visits::default();
     if n == 0 {
-        return true;
+        return Some(visits);
     }
     // Per-ray values, four lanes per group; lanes past `n` repeat the last ray but never
     // enter a box (their horizon is −∞).
@@ -135,7 +139,7 @@ unsafe fn trace<const ANY: bool>(
             if k == 0 {
                 octant = r.near;
             } else if r.near != octant {
-                return false;
+                return None;
             }
             for a in 0..3 {
                 widen(&mut o_range[a], r.origin[a]);
@@ -156,7 +160,7 @@ unsafe fn trace<const ANY: bool>(
     }
     let nodes = bvh.nodes();
     if nodes.is_empty() || live == 0 {
-        return true;
+        return Some(visits);
     }
     let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
     let near: [usize; 3] = [0, 1, 2].map(|a| offset(octant[a], a));
@@ -228,6 +232,7 @@ unsafe fn trace<const ANY: bool>(
             let planes = node.planes.as_ptr().cast::<f64>();
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
+            visits.leaves += 1;
             for g in 0..GROUPS {
                 // SAFETY: AVX2 is enabled in this function.
                 let lane = |groups: &Groups| unsafe { groups.load(g) };
@@ -246,6 +251,7 @@ unsafe fn trace<const ANY: bool>(
                     _mm256_cmp_pd }
                 };
                 let mut hits = _mm256_movemask_pd(entered) as u32;
+                visits.entries += hits.count_ones();
                 while hits != 0 {
                     let l = hits.trailing_zeros() as usize;
                     hits &= hits - 1;
@@ -296,7 +302,7 @@ unsafe fn trace<const ANY: bool>(
                     }
                 }
             }
-            return true;
+            return Some(visits);
         };
         current = next;
     }

@@ -817,6 +817,7 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
 }
 
 #[test]
+#[cfg(target_arch = "x86_64")]
 fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
     // A packet tests inner nodes for all its rays at once, so when each of its rays meets
     // other small triangles it reaches many leaves that no ray enters; such packets are
@@ -855,7 +856,7 @@ fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
             let Some(visits) = visits else { continue };
             if visits.leaves > 0 {
                 reaching += 1;
-                wasteful += usize::from(visits.wasteful());
+                wasteful += usize::from(visits.wasteful(raybatch::packet::PacedTree::Triangles));
             }
         }
         assert!(reaching > 10, "{reaching} packets reached a leaf");
@@ -864,6 +865,44 @@ fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
     // 82k triangles, a few pixels each at 1024², several per pixel at 128².
     let coarse = wasteful_share(128);
     let fine = wasteful_share(1024);
+    assert!(coarse > 0.5, "{coarse}");
+    assert!(fine < 0.02, "{fine}");
+}
+
+#[test]
+#[cfg(target_arch = "x86_64")]
+fn sphere_packets_wider_than_the_spheres_send_the_next_groups_one_by_one() {
+    // The sphere packets are paced on their own evidence: a packet over spheres much
+    // smaller than its rays are apart sends the next groups through the spheres one by
+    // one, and leaves the triangle packets' pacing alone.
+    use raybatch::packet::{PacedTree, worth_trying};
+    if !has_avx2() {
+        return;
+    }
+    let scene = Scene::build(&SceneGeometry {
+        spheres: raybatch::bench::scattered_spheres(10_000),
+        ..SceneGeometry::default()
+    });
+    let eye = DVec3::new(4.8, 7.2, 18.0);
+    // Of the groups traced as sphere packets, the share after which packets pause.
+    let paused_share = |size: u32| {
+        let rays = tiled_camera_rays(eye, DVec3::ZERO, size);
+        let mut out = [None; 64];
+        let (mut packets, mut paused) = (0, 0);
+        for group in rays.chunks(64).filter(|g| scene.traces_as_packet(g)) {
+            // Let any pause run out, so that this group is a packet.
+            while !worth_trying(PacedTree::Spheres) {}
+            scene.closest_hits(group, &mut out);
+            packets += 1;
+            paused += usize::from(!worth_trying(PacedTree::Spheres));
+            assert!(worth_trying(PacedTree::Triangles));
+        }
+        assert!(packets > 5, "{packets} packets");
+        paused as f64 / packets as f64
+    };
+    // 10,000 spheres: many per packet's footprint at 32², a few rays per sphere at 1024².
+    let coarse = paused_share(32);
+    let fine = paused_share(1024);
     assert!(coarse > 0.5, "{coarse}");
     assert!(fine < 0.02, "{fine}");
 }
