@@ -25,7 +25,7 @@ use obvhs::bvh2::Bvh2;
 
 use rayon::prelude::*;
 
-use crate::collapse::Collapse;
+use crate::collapse::{Collapse, LeafCost};
 
 /// Children per node.
 pub const WIDTH: usize = 8;
@@ -346,8 +346,8 @@ impl<T: Scalar> Bvh<T> {
     /// Builds the tree over primitives with boxes `boxes`: obvhs' PLOC builder (one
     /// primitive per leaf) and reinsertion optimizer shape a binary tree, which is
     /// collapsed into 8-wide nodes with leaves of at most `params.max_prims_per_leaf`
-    /// primitives ([`crate::collapse`]). Each slot's box is the union of its primitives'
-    /// boxes, exactly.
+    /// primitives, each leaf costing `leaf_cost` ([`crate::collapse`]). Each slot's box is
+    /// the union of its primitives' boxes, exactly.
     ///
     /// Returns the tree and the primitives in leaf order: a leaf holds the primitives at
     /// positions `first..first + count` of that order, and refers to the items
@@ -356,6 +356,7 @@ impl<T: Scalar> Bvh<T> {
     pub fn build(
         boxes: &[Aabb],
         params: BvhBuildParams,
+        leaf_cost: LeafCost,
         leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
     ) -> (Bvh<T>, Vec<u32>) {
         if boxes.is_empty() {
@@ -378,7 +379,7 @@ impl<T: Scalar> Bvh<T> {
             params.reinsertion_batch_ratio,
             None,
         );
-        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_items)
+        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost, leaf_items)
     }
 
     /// Collapses a binary obvhs tree into 8-wide nodes ([`crate::collapse`]), with leaves
@@ -394,9 +395,10 @@ impl<T: Scalar> Bvh<T> {
     pub fn from_bvh2(
         bvh2: &Bvh2,
         max_leaf: u32,
+        leaf_cost: LeafCost,
         leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
     ) -> (Bvh<T>, Vec<u32>) {
-        let collapse = Collapse::new(bvh2, max_leaf.max(1));
+        let collapse = Collapse::new(bvh2, max_leaf.max(1), leaf_cost);
         let total = bvh2.primitive_indices.len();
         assert!(
             total < MAX_ITEMS,
@@ -913,9 +915,12 @@ mod tests {
         ] {
             let boxes = scattered_boxes(count);
             for &preset in presets {
-                for max_leaf in [1, 3, 4] {
+                for (max_leaf, cost) in [1, 3, 4, 16]
+                    .into_iter()
+                    .flat_map(|m| [(m, LeafCost::ONE_BY_ONE), (m, LeafCost::TRIANGLE_BLOCKS)])
+                {
                     let (bvh, order): (Bvh<f32>, _) =
-                        Bvh::build(&boxes, preset.params(max_leaf), |first, count| {
+                        Bvh::build(&boxes, preset.params(max_leaf), cost, |first, count| {
                             assert!(count <= max_leaf, "{preset:?}");
                             (first, count)
                         });
@@ -950,8 +955,12 @@ mod tests {
     #[test]
     fn leaf_ancestors_are_the_nodes_that_many_levels_above_each_items_leaf() {
         let boxes = scattered_boxes(5000);
-        let (bvh, _): (Bvh<f32>, _) =
-            Bvh::build(&boxes, BuildPreset::default().params(4), |f, c| (f, c));
+        let (bvh, _): (Bvh<f32>, _) = Bvh::build(
+            &boxes,
+            BuildPreset::default().params(4),
+            LeafCost::ONE_BY_ONE,
+            |f, c| (f, c),
+        );
         let mut expected = vec![Vec::new(); boxes.len()];
         paths(&bvh, 0, &mut Vec::new(), &mut expected);
         assert!(bvh.depth() >= 4);
