@@ -314,3 +314,59 @@ struct Costs {
     cost: [f32; SLOTS - 1],
     primitives: u32,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bvh::{BuildPreset, Bvh};
+    use obvhs::aabb::Aabb;
+
+    #[test]
+    fn a_leaf_costs_the_blocks_its_run_touches_on_average() {
+        for n in 1..=16u32 {
+            // A run of `n` primitives starting at each offset within a block of four.
+            let touched: u32 = (0..4).map(|start| (start + n - 1) / 4 + 1).sum();
+            let expected = 0.3 * touched as f32 / 4.0;
+            let cost = LeafCost::TRIANGLE_BLOCKS.of(n, 1.0);
+            assert!(
+                (cost - expected).abs() < 1e-6,
+                "{n}: {cost} against {expected}"
+            );
+            let one_by_one = LeafCost::ONE_BY_ONE.of(n, 2.0);
+            assert!(
+                (one_by_one - 0.6 * n as f32).abs() < 1e-5,
+                "{n}: {one_by_one}"
+            );
+        }
+    }
+
+    #[test]
+    fn counting_blocks_gives_fewer_larger_leaves() {
+        let mesh = crate::procedural::icosphere(5);
+        let boxes: Vec<Aabb> = (mesh.triangles.iter())
+            .map(|t| {
+                let [a, b, c] = t.map(|i| glam::Vec3A::from(mesh.positions[i as usize]));
+                Aabb::new(a.min(b).min(c), a.max(b).max(c))
+            })
+            .collect();
+        // Triangles per leaf, and nodes.
+        let shape = |cost| {
+            let leaves = std::sync::atomic::AtomicUsize::new(0);
+            let params = BuildPreset::default().params(16);
+            let (bvh, _): (Bvh<f32>, _) = Bvh::build(&boxes, params, cost, |first, count| {
+                leaves.fetch_add(1, Ordering::Relaxed);
+                (first, count)
+            });
+            let per_leaf = boxes.len() as f64 / leaves.into_inner() as f64;
+            (per_leaf, bvh.nodes().len())
+        };
+        let (one_by_one, nodes_one_by_one) = shape(LeafCost::ONE_BY_ONE);
+        let (blocks, nodes_blocks) = shape(LeafCost::TRIANGLE_BLOCKS);
+        assert!(one_by_one < 2.0, "{one_by_one}");
+        assert!((3.0..8.0).contains(&blocks), "{blocks}");
+        assert!(
+            2 * nodes_blocks < nodes_one_by_one,
+            "{nodes_blocks} {nodes_one_by_one}"
+        );
+    }
+}
