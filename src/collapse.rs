@@ -52,6 +52,7 @@ impl LeafCost {
         area * self.per_group * groups
     }
 }
+
 /// Levels of the binary tree below which subtrees are costed in parallel.
 const PARALLEL_LEVELS: u32 = 10;
 /// Levels costed by plain recursion; deeper subtrees (degenerate trees) use an explicit
