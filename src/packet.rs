@@ -119,13 +119,17 @@ pub struct Visits {
 impl Visits {
     /// Fewest leaves before [`Visits::wasteful`] judges a packet.
     pub const JUDGED_FROM: u32 = 16;
+    /// Leaves reached per entering ray above which a packet is judged wasteful: where
+    /// tracing one by one becomes about as fast, through the triangles (an 82k-triangle
+    /// icosphere at 128², the full-HD torus of `raybatch bench`) as through the spheres
+    /// (the sphere field at 64²), timing each packet against its rays one by one
+    /// (DEVELOPERS.md, "Performance notes").
+    pub const MOST_LEAVES_PER_ENTRY: u32 = 1;
 
-    /// Whether so few rays entered the leaves the packet reached through `tree` that the
-    /// next rays nearby are better traced one by one: more leaves per entering ray than
-    /// [`PacedTree::most_leaves_per_entry`].
-    pub fn wasteful(self, tree: PacedTree) -> bool {
-        self.leaves >= Self::JUDGED_FROM
-            && self.leaves > tree.most_leaves_per_entry() * self.entries
+    /// Whether so few rays entered the leaves the packet reached that the next rays
+    /// nearby are better traced one by one.
+    pub fn wasteful(self) -> bool {
+        self.leaves >= Self::JUDGED_FROM && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
     }
 }
 
@@ -135,20 +139,6 @@ impl Visits {
 pub enum PacedTree {
     Triangles,
     Spheres,
-}
-
-impl PacedTree {
-    /// Leaves reached per entering ray above which a packet is judged wasteful: where
-    /// tracing one by one becomes about as fast (`cargo bench --bench trace -- packets`
-    /// and the full-HD torus of `raybatch bench`; DEVELOPERS.md, "Performance notes").
-    /// A sphere leaf's test is cheaper than a triangle leaf's, so packets through spheres
-    /// lose sooner.
-    pub fn most_leaves_per_entry(self) -> u32 {
-        match self {
-            PacedTree::Triangles => 2,
-            PacedTree::Spheres => 1,
-        }
-    }
 }
 
 thread_local! {
@@ -186,7 +176,7 @@ pub fn record(tree: PacedTree, visits: Visits) {
     PACING.with(|pacing| {
         let pacing = &pacing[tree as usize];
         let (_, next) = pacing.get();
-        pacing.set(if visits.wasteful(tree) {
+        pacing.set(if visits.wasteful() {
             (next, (2 * next).min(MOST_SINGLE_AFTER_WASTE))
         } else {
             (0, SINGLE_AFTER_WASTE)
@@ -559,25 +549,19 @@ mod tests {
 
     #[test]
     fn a_wasteful_packet_sends_the_next_groups_one_by_one_for_doubling_spells() {
-        // Just over and just at each tree's most leaves per entering ray.
-        let wasteful = |tree: PacedTree| Visits {
+        let wasteful = Visits {
             leaves: 40,
-            entries: 40 / tree.most_leaves_per_entry() - 1,
+            entries: 40 / Visits::MOST_LEAVES_PER_ENTRY - 1,
         };
-        let useful = |tree: PacedTree| Visits {
+        let useful = Visits {
             leaves: 40,
-            entries: 40 / tree.most_leaves_per_entry(),
+            entries: 40 / Visits::MOST_LEAVES_PER_ENTRY,
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
         };
-        for tree in [PacedTree::Triangles, PacedTree::Spheres] {
-            assert!(wasteful(tree).wasteful(tree));
-            assert!(!useful(tree).wasteful(tree) && !unjudged.wasteful(tree));
-        }
-        // The same visits may be wasteful through spheres and not through triangles.
-        assert!(!wasteful(PacedTree::Spheres).wasteful(PacedTree::Triangles));
+        assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
         // Each test runs on its own thread: the pacing starts fresh.
         let spell = |tree| {
             let single = std::iter::repeat_with(|| worth_trying(tree))
@@ -593,15 +577,15 @@ mod tests {
             record(tree, unjudged);
             assert_eq!(spell(tree), 0);
             for expected in [2, 4, 8, 16, 32, 64, 128, 128] {
-                record(tree, wasteful(tree));
+                record(tree, wasteful);
                 // The other tree's packets are still tried.
                 assert_eq!(spell(other), 0);
                 assert_eq!(spell(tree), expected);
             }
             // A useful packet ends the doubling; a packet reaching few leaves says nothing.
-            record(tree, useful(tree));
+            record(tree, useful);
             assert_eq!(spell(tree), 0);
-            record(tree, wasteful(tree));
+            record(tree, wasteful);
             record(tree, unjudged);
             assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
         }

@@ -860,7 +860,7 @@ fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
             let Some(visits) = visits else { continue };
             if visits.leaves > 0 {
                 reaching += 1;
-                wasteful += usize::from(visits.wasteful(raybatch::packet::PacedTree::Triangles));
+                wasteful += usize::from(visits.wasteful());
             }
         }
         assert!(reaching > 10, "{reaching} packets reached a leaf");
