@@ -17,7 +17,8 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, block_test, distance, lanes4, pack, push_sorted, ray_constants, slab_test, tri_lanes,
+    STACK, block_test, distance, lanes4, pack, prefetch, push_sorted, ray_constants, slab_test,
+    tri_lanes,
 };
 use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
@@ -467,19 +468,6 @@ unsafe fn trace<const ANY: bool>(
             return Some(visits);
         };
         current = next;
-    }
-}
-
-/// Asks the cache for every line of the `count` items at `first`, without waiting for
-/// them. (A prefetch never faults, so the address need not even be valid.)
-#[inline(always)]
-fn prefetch<T>(first: *const T, count: usize) {
-    const LINE: usize = 64;
-    let start = first as usize;
-    let end = start.wrapping_add(count * std::mem::size_of::<T>());
-    for line in (start & !(LINE - 1)..end).step_by(LINE) {
-        // SAFETY: a prefetch never faults, whatever the address; SSE is part of x86-64.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
     }
 }
 

@@ -11,7 +11,7 @@
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{BoxRay, Bvh, LEAF, Node, WIDTH, leaf_range};
+use crate::bvh::{BoxRay, Bvh, ChildRef, LEAF, Node, WIDTH, leaf_range};
 use crate::hint::AnyHitHint;
 use crate::ray::Ray;
 use crate::scene::TriangleRay;
@@ -433,6 +433,7 @@ pub unsafe fn closest(
             let first = mask.trailing_zeros() as usize;
             let rest = mask & (mask - 1);
             current = node.children[first];
+            prefetch_next(nodes, blocks, current);
             if rest == 0 {
                 continue;
             }
@@ -496,6 +497,33 @@ pub unsafe fn closest(
         }
     }
     found.map(|hit| (nearest, hit))
+}
+
+/// Asks the cache for every line of the `count` items at `first`, without waiting for
+/// them. (A prefetch never faults, so the address need not even be valid.)
+#[inline(always)]
+pub(crate) fn prefetch<T>(first: *const T, count: usize) {
+    const LINE: usize = 64;
+    let start = first as usize;
+    let end = start.wrapping_add(count * std::mem::size_of::<T>());
+    for line in (start & !(LINE - 1)..end).step_by(LINE) {
+        // SAFETY: a prefetch never faults, whatever the address; SSE is part of x86-64.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
+    }
+}
+
+/// Asks the cache for the node or leaf blocks of `child`, the next to be visited: where
+/// neighbouring rays share few nodes (a fine mesh at low resolution) the fetch then runs
+/// while the rest of the parent's children are ordered and pushed. Closest hit only: in
+/// any-hit traversal, which pushes children unordered, it measured slower.
+#[inline(always)]
+fn prefetch_next(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: ChildRef) {
+    if child & LEAF == 0 {
+        prefetch(nodes.as_ptr().wrapping_add(child as usize), 1);
+    } else {
+        let (first, count) = leaf_range(child);
+        prefetch(blocks.as_ptr().wrapping_add(first as usize), count as usize);
+    }
 }
 
 /// Any-hit traversal: whether some triangle has `tmin < t < tmax`. The hint's block is
