@@ -512,10 +512,13 @@ pub(crate) fn prefetch<T>(first: *const T, count: usize) {
     }
 }
 
-/// Asks the cache for the node or leaf blocks of `child`, the next to be visited: where
-/// neighbouring rays share few nodes (a fine mesh at low resolution) the fetch then runs
-/// while the rest of the parent's children are ordered and pushed. Closest hit only: in
-/// any-hit traversal, which pushes children unordered, it measured slower.
+/// Asks the cache for the node or leaf blocks of `child`: where neighbouring rays share
+/// few nodes (a fine mesh at low resolution) the fetch then runs while the other entered
+/// children are ordered and pushed. The closest-hit traversal asks for the entered child
+/// in the lowest slot at once, before knowing which is nearest: the next visited when it
+/// is the only one, and otherwise one of those the ray entered. (Asking for the nearest
+/// once ordered measured no better at 320x180 and 1–3% slower at full HD; in any-hit
+/// traversal, which takes children unordered, asking at all cost 6–13%.)
 #[inline(always)]
 fn prefetch_next(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: ChildRef) {
     if child & LEAF == 0 {
