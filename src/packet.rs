@@ -17,8 +17,8 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, block_test, distance, lanes4, pack, prefetch, push_sorted, ray_constants, slab_test,
-    tri_lanes,
+    STACK, block_test, distance, lanes4, pack, prefetch_child, push_sorted, ray_constants,
+    slab_test, tri_lanes,
 };
 use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
@@ -365,12 +365,10 @@ unsafe fn trace<const ANY: bool>(
                     let child = node.children[i];
                     // A packet visits nearly every child it enters, so the child's memory
                     // is asked for now and arrives while the nearer children are traced.
+                    prefetch_child(nodes, blocks, child);
                     let reference = if child & LEAF == 0 {
-                        prefetch(nodes.as_ptr().wrapping_add(child as usize), 1);
                         child
                     } else {
-                        let (first, count) = leaf_range(child);
-                        prefetch(blocks.as_ptr().wrapping_add(first as usize), count as usize);
                         leaf_entry(current, i)
                     };
                     push_child::<ANY>(&mut stack, base, &mut sp, pack(entries[i], reference));

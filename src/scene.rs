@@ -393,10 +393,26 @@ impl Scene {
         self.adaptive_packets = on;
     }
 
-    /// Whether to try the next group of rays as a packet through `tree`.
+    /// Traces a group of rays as a packet through `tree` when `enabled` (the CPU and tree
+    /// allow it) and the pacing does not hold packets back: `trace` runs the packet and
+    /// returns what it visited, or `None` when the rays cannot be one. Returns whether
+    /// the group was traced; if not, the caller traces it ray by ray.
     #[cfg(target_arch = "x86_64")]
-    fn packet_worth_trying(&self, tree: PacedTree) -> bool {
-        !self.adaptive_packets || crate::packet::worth_trying(tree)
+    #[inline(always)]
+    fn traced_as_packet(
+        &self,
+        tree: PacedTree,
+        enabled: bool,
+        trace: impl FnOnce() -> Option<crate::packet::Visits>,
+    ) -> bool {
+        if !enabled || (self.adaptive_packets && !crate::packet::worth_trying(tree)) {
+            return false;
+        }
+        let Some(visits) = trace() else {
+            return false;
+        };
+        crate::packet::record(tree, visits);
+        true
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -484,21 +500,17 @@ impl Scene {
             return;
         }
         #[cfg(target_arch = "x86_64")]
-        if self.sphere_packets && self.packet_worth_trying(PacedTree::Spheres) {
-            // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack fits.
-            let visits = unsafe {
-                crate::sphere_packet::closest(
-                    &self.sphere_bvh,
-                    &self.spheres,
-                    rays,
-                    tmax,
-                    |k, t, position| out[k] = Some(self.sphere_hit(t, position)),
-                )
-            };
-            if let Some(visits) = visits {
-                crate::packet::record(PacedTree::Spheres, visits);
-                return;
-            }
+        // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack fits.
+        if self.traced_as_packet(PacedTree::Spheres, self.sphere_packets, || unsafe {
+            crate::sphere_packet::closest(
+                &self.sphere_bvh,
+                &self.spheres,
+                rays,
+                tmax,
+                |k, t, position| out[k] = Some(self.sphere_hit(t, position)),
+            )
+        }) {
+            return;
         }
         for (k, ray) in rays.iter().enumerate() {
             if let Some(hit) = self.closest_sphere(ray, tmax[k]) {
@@ -530,20 +542,16 @@ impl Scene {
             }
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
-            if self.simd && self.packet_worth_trying(PacedTree::Triangles) {
-                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-                let visits = unsafe {
-                    crate::packet::closest(
-                        &self.triangles.bvh,
-                        &self.triangles.blocks,
-                        prepared,
-                        |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
-                    )
-                };
-                if let Some(visits) = visits {
-                    crate::packet::record(PacedTree::Triangles, visits);
-                    continue;
-                }
+            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+            if self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
+                crate::packet::closest(
+                    &self.triangles.bvh,
+                    &self.triangles.blocks,
+                    prepared,
+                    |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
+                )
+            }) {
+                continue;
             }
             for (k, ray) in rays.iter().enumerate() {
                 let tmax = out[k].map_or(ray.tmax, |h| h.t);
@@ -576,26 +584,28 @@ impl Scene {
                 continue;
             }
             #[cfg(target_arch = "x86_64")]
-            if self.simd && self.packet_worth_trying(PacedTree::Triangles) {
-                let mut prepared = [TriangleRay::EMPTY; PACKET];
-                for (k, ray) in rays.iter().enumerate() {
-                    // A ray already hit needs no triangle: an empty interval.
-                    let tmax = if out[k] { f64::NEG_INFINITY } else { ray.tmax };
-                    prepared[k] = TriangleRay::new(ray, tmax);
-                }
+            {
                 let mut triangles = [false; PACKET];
                 let n = rays.len();
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-                let visits = unsafe {
-                    crate::packet::any(
-                        &self.triangles.bvh,
-                        &self.triangles.blocks,
-                        &prepared[..n],
-                        &mut triangles[..n],
-                    )
-                };
-                if let Some(visits) = visits {
-                    crate::packet::record(PacedTree::Triangles, visits);
+                let traced = self.traced_as_packet(PacedTree::Triangles, self.simd, || {
+                    let mut prepared = [TriangleRay::EMPTY; PACKET];
+                    for (k, ray) in rays.iter().enumerate() {
+                        // A ray already hit needs no triangle: an empty interval.
+                        let tmax = if out[k] { f64::NEG_INFINITY } else { ray.tmax };
+                        prepared[k] = TriangleRay::new(ray, tmax);
+                    }
+                    // SAFETY: as above.
+                    unsafe {
+                        crate::packet::any(
+                            &self.triangles.bvh,
+                            &self.triangles.blocks,
+                            &prepared[..n],
+                            &mut triangles[..n],
+                        )
+                    }
+                });
+                if traced {
                     for (out, hit) in out.iter_mut().zip(triangles) {
                         *out |= hit;
                     }
@@ -708,15 +718,15 @@ impl Scene {
             return;
         }
         #[cfg(target_arch = "x86_64")]
-        if self.sphere_packets && self.packet_worth_trying(PacedTree::Spheres) {
+        // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack fits.
+        if self.traced_as_packet(PacedTree::Spheres, self.sphere_packets, || {
             let mut tmax = [0f64; PACKET];
             for (k, ray) in rays.iter().enumerate() {
                 // A ray already hit needs no sphere: an empty interval.
                 tmax[k] = if out[k] { f64::NEG_INFINITY } else { ray.tmax };
             }
-            // SAFETY: `sphere_packets` is set only when the CPU has AVX2 and the stack
-            // fits.
-            let visits = unsafe {
+            // SAFETY: as above.
+            unsafe {
                 crate::sphere_packet::any(
                     &self.sphere_bvh,
                     &self.spheres,
@@ -724,11 +734,9 @@ impl Scene {
                     &tmax[..rays.len()],
                     |k, _, _| out[k] = true,
                 )
-            };
-            if let Some(visits) = visits {
-                crate::packet::record(PacedTree::Spheres, visits);
-                return;
             }
+        }) {
+            return;
         }
         for (ray, out) in rays.iter().zip(out.iter_mut()) {
             *out = *out || self.any_sphere(ray, hint);

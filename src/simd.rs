@@ -433,7 +433,7 @@ pub unsafe fn closest(
             let first = mask.trailing_zeros() as usize;
             let rest = mask & (mask - 1);
             current = node.children[first];
-            prefetch_next(nodes, blocks, current);
+            prefetch_child(nodes, blocks, current);
             if rest == 0 {
                 continue;
             }
@@ -502,7 +502,7 @@ pub unsafe fn closest(
 /// Asks the cache for every line of the `count` items at `first`, without waiting for
 /// them. (A prefetch never faults, so the address need not even be valid.)
 #[inline(always)]
-pub(crate) fn prefetch<T>(first: *const T, count: usize) {
+fn prefetch<T>(first: *const T, count: usize) {
     const LINE: usize = 64;
     let start = first as usize;
     let end = start.wrapping_add(count * std::mem::size_of::<T>());
@@ -512,15 +512,17 @@ pub(crate) fn prefetch<T>(first: *const T, count: usize) {
     }
 }
 
-/// Asks the cache for the node or leaf blocks of `child`: where neighbouring rays share
-/// few nodes (a fine mesh at low resolution) the fetch then runs while the other entered
-/// children are ordered and pushed. The closest-hit traversal asks for the entered child
-/// in the lowest slot at once, before knowing which is nearest: the next visited when it
-/// is the only one, and otherwise one of those the ray entered. (Asking for the nearest
-/// once ordered measured no better at 320x180 and 1–3% slower at full HD; in any-hit
-/// traversal, which takes children unordered, asking at all cost 6–13%.)
+/// Asks the cache for the node or leaf blocks of `child`, so that they arrive while other
+/// work goes on. A packet asks for every child it pushes (it visits nearly all of them).
+/// The single-ray closest-hit traversal asks for the entered child in the lowest slot at
+/// once, before knowing which is nearest: the next visited when it is the only one, and
+/// otherwise one of those the ray entered; where neighbouring rays share few nodes (a fine
+/// mesh at low resolution) the fetch runs while the other children are ordered and pushed.
+/// (Asking for the nearest once ordered measured no better at 320x180 and 1–3% slower at
+/// full HD; in single-ray any-hit traversal, which takes children unordered, asking at
+/// all cost 6–13%.)
 #[inline(always)]
-fn prefetch_next(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: ChildRef) {
+pub(crate) fn prefetch_child(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: ChildRef) {
     if child & LEAF == 0 {
         prefetch(nodes.as_ptr().wrapping_add(child as usize), 1);
     } else {
