@@ -353,14 +353,14 @@ impl Band<'_> {
         let at = (dy as usize * self.width as usize + x as usize) * 3;
         match &mut self.data {
             BandData::Rgb8(bytes) => {
-                for c in 0..3 {
-                    bytes[at + c] = quantize(encode(value[c], self.encoding));
-                }
+                let encoded = match self.encoding {
+                    Encoding::Linear => value,
+                    Encoding::Srgb => value.map(|c| encode(c, Encoding::Srgb)),
+                };
+                bytes[at..at + 3].copy_from_slice(&encoded.map(quantize));
             }
             BandData::RgbF32(floats) => {
-                for c in 0..3 {
-                    floats[at + c] = value[c] as f32;
-                }
+                floats[at..at + 3].copy_from_slice(&value.map(|c| c as f32));
             }
         }
     }
@@ -384,14 +384,9 @@ pub fn encode(c: f64, encoding: Encoding) -> f64 {
 /// `floor(clamp(c * 256, 0, 255))`; NaN becomes 0.
 #[inline]
 pub fn quantize(c: f64) -> u8 {
-    let scaled = c * 256.0;
-    if scaled >= 255.0 {
-        255
-    } else if scaled > 0.0 {
-        scaled as u8
-    } else {
-        0
-    }
+    // Rust's float-to-integer cast truncates toward zero and saturates (NaN to 0): for
+    // `c * 256` that is floor and clamp at once, without branches.
+    (c * 256.0) as u8
 }
 
 /// The decimal digits of every byte value, and how many there are.
@@ -469,6 +464,10 @@ mod tests {
             (255.0 / 256.0, 255),
             (1.0, 255),
             (7.0, 255),
+            (f64::INFINITY, 255),
+            (f64::NEG_INFINITY, 0),
+            (-0.0, 0),
+            (-1e-300, 0),
         ];
         for (c, expected) in cases {
             assert_eq!(quantize(c), expected, "{c}");
