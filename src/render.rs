@@ -88,6 +88,35 @@ impl View {
     }
 }
 
+impl View {
+    /// [`View::ray`] for sample `s` of each pixel `(x, y0 + dy)` of `pixels`, into `out`:
+    /// the same rays, computed several at a time when the camera is a pinhole and the
+    /// sampler takes a fixed offset (every pixel's `u` and `v` then come from tables).
+    pub fn rays(&self, pixels: &[(u32, u32)], y0: u32, s: u32, out: &mut [Ray]) {
+        const MOST: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
+        match &self.screen {
+            Some((columns, rows)) if !self.camera.has_lens() && pixels.len() <= MOST => {
+                let (mut u, mut v) = ([0.0; MOST], [0.0; MOST]);
+                for (i, &(x, dy)) in pixels.iter().enumerate() {
+                    u[i] = columns[x as usize];
+                    v[i] = rows[(y0 + dy) as usize];
+                }
+                let n = pixels.len();
+                self.camera.pinhole_rays(&u[..n], &v[..n], out);
+                for ray in out.iter_mut() {
+                    ray.tmin = self.tmin;
+                    ray.tmax = self.tmax;
+                }
+            }
+            _ => {
+                for (ray, &(x, dy)) in out.iter_mut().zip(pixels) {
+                    *ray = self.ray(x, y0 + dy, s);
+                }
+            }
+        }
+    }
+}
+
 /// Refuses manifests whose integrator this version cannot render yet.
 pub fn check_supported(manifest: &Manifest) -> Result<(), ManifestError> {
     match manifest.integrator {
@@ -183,11 +212,17 @@ pub fn render_with<T: Tracer, I: Integrator>(
                         n += 1;
                     }
                 }
+                if spp == 1 {
+                    view.rays(&pixels[..n], band.y0, 0, &mut rays[..n]);
+                    integrator.values(scene, &rays[..n], &mut values[..n]);
+                    for (&(x, dy), value) in pixels[..n].iter().zip(&values) {
+                        band.set(x, dy, *value);
+                    }
+                    continue;
+                }
                 let mut sums = [[0.0f64; 3]; GROUP];
                 for s in 0..spp {
-                    for (ray, &(x, dy)) in rays.iter_mut().zip(&pixels[..n]) {
-                        *ray = view.ray(x, band.y0 + dy, s);
-                    }
+                    view.rays(&pixels[..n], band.y0, s, &mut rays[..n]);
                     integrator.values(scene, &rays[..n], &mut values[..n]);
                     for (sum, value) in sums.iter_mut().zip(&values[..n]) {
                         for c in 0..3 {
@@ -196,16 +231,53 @@ pub fn render_with<T: Tracer, I: Integrator>(
                     }
                 }
                 for (&(x, dy), sum) in pixels[..n].iter().zip(&sums) {
-                    // `c / 1.0` is `c`: one sample skips three divisions per pixel.
-                    let mean = if spp == 1 {
-                        *sum
-                    } else {
-                        sum.map(|c| c / f64::from(spp))
-                    };
-                    band.set(x, dy, mean);
+                    band.set(x, dy, sum.map(|c| c / f64::from(spp)));
                 }
             }
         }
         progress(u64::from(rows) * u64::from(width));
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rays_of_a_group_are_the_rays_one_by_one() {
+        // The table-and-vector path (pinhole, fixed offset) and the ray-by-ray path
+        // (random offsets, a lens), for groups of every size up to a packet's.
+        let camera = r#""camera": {"look_from": [1, 2, 3], "look_at": [0, 0.5, 0], "vfov": 50"#;
+        let manifests = [
+            format!(r#"{{"image": {{"width": 37, "height": 23}}, {camera}}}}}"#),
+            format!(
+                r#"{{"image": {{"width": 37, "height": 23}}, {camera}}},
+                    "sampler": {{"type": "independent", "spp": 3, "seed": 5}}}}"#
+            ),
+            format!(
+                r#"{{"image": {{"width": 37, "height": 23}}, {camera}, "aperture": 0.2, "focus_distance": 3}}}}"#
+            ),
+        ];
+        for text in &manifests {
+            let manifest = Manifest::parse(text.as_bytes(), std::path::Path::new("t.json")).unwrap();
+            let view = View::new(&manifest);
+            let pixels: Vec<(u32, u32)> = (0..64).map(|i| ((i * 7) % 37, (i * 3) % 16)).collect();
+            for n in 0..=pixels.len() {
+                for s in 0..view.spp() {
+                    let mut rays = vec![view.ray(0, 0, 0); n];
+                    view.rays(&pixels[..n], 7, s, &mut rays);
+                    for (ray, &(x, dy)) in rays.iter().zip(&pixels) {
+                        let one = view.ray(x, 7 + dy, s);
+                        let bits = |r: &Ray| {
+                            [r.origin, r.direction]
+                                .map(|v| v.to_array().map(f64::to_bits))
+                                .concat()
+                        };
+                        assert_eq!(bits(ray), bits(&one), "{text}: pixel ({x}, {dy}) of {n}");
+                        assert_eq!((ray.tmin, ray.tmax), (one.tmin, one.tmax));
+                    }
+                }
+            }
+        }
+    }
 }
