@@ -259,7 +259,8 @@ mod tests {
             ),
         ];
         for text in &manifests {
-            let manifest = Manifest::parse(text.as_bytes(), std::path::Path::new("t.json")).unwrap();
+            let manifest =
+                Manifest::parse(text.as_bytes(), std::path::Path::new("t.json")).unwrap();
             let view = View::new(&manifest);
             let pixels: Vec<(u32, u32)> = (0..64).map(|i| ((i * 7) % 37, (i * 3) % 16)).collect();
             for n in 0..=pixels.len() {

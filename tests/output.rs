@@ -152,4 +152,9 @@ fn stats_has_one_json_line_per_job_with_the_documented_keys() {
     assert_eq!(lines[2]["triangles"], 1);
     assert_eq!(lines[2]["spp"], 3);
     assert!(lines[2]["render_s"].as_f64().unwrap() >= 0.0);
+
+    // A second run replaces the file (as `--help` and the README say), not appends to it.
+    dir.raybatch(&["render", "jobs/a.json", "--stats", "stats.jsonl"]);
+    let text = String::from_utf8(dir.read("stats.jsonl")).unwrap();
+    assert_eq!(text.lines().count(), 1, "{text}");
 }

@@ -88,7 +88,8 @@ pub struct RenderArgs {
     /// Worker threads (default: all cores). The images do not depend on it.
     #[arg(long, value_name = "N")]
     pub threads: Option<NonZeroUsize>,
-    /// Append one JSON object per job to FILE (timings, counts, errors).
+    /// Write one JSON object per job to FILE, one per line (timings, counts, errors); an
+    /// existing FILE is replaced.
     #[arg(long, value_name = "FILE")]
     pub stats: Option<PathBuf>,
     /// The tracer: raybatch's own, or the Embree reference (`--features embree` builds).
