@@ -86,9 +86,7 @@ impl View {
         ray.tmax = self.tmax;
         ray
     }
-}
 
-impl View {
     /// [`View::ray`] for sample `s` of each pixel `(x, y0 + dy)` of `pixels`, into `out`:
     /// the same rays, computed several at a time when the camera is a pinhole and the
     /// sampler takes a fixed offset (every pixel's `u` and `v` then come from tables).
