@@ -141,21 +141,22 @@ impl Camera {
         }
         ray
     }
-}
 
-impl Camera {
     /// The rays of a pinhole camera through screen coordinates `(u[i], v[i])`, into
     /// `out[i]`: bit for bit the rays of [`Camera::ray_at`] (lens sample at the centre),
     /// computed four at a time with AVX where the CPU has it, so that four rays share each
     /// square root and division.
     pub fn pinhole_rays(&self, u: &[f64], v: &[f64], out: &mut [Ray]) {
         assert!(u.len() == out.len() && v.len() == out.len());
-        let mut done = 0;
         #[cfg(target_arch = "x86_64")]
-        if self.lens.is_none() && std::is_x86_feature_detected!("avx") {
+        let done = if self.lens.is_none() && std::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX.
-            done = unsafe { self.pinhole_rays_avx(u, v, out) };
-        }
+            unsafe { self.pinhole_rays_avx(u, v, out) }
+        } else {
+            0
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let done = 0;
         for ((ray, &u), &v) in out[done..].iter_mut().zip(&u[done..]).zip(&v[done..]) {
             *ray = self.ray_at(u, v, crate::sampler::CENTER);
         }
