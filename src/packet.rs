@@ -64,23 +64,6 @@ pub(crate) fn leaf_parent(entry: u32) -> (usize, usize) {
     (parent as usize, (entry & ((1 << SLOT_BITS) - 1)) as usize)
 }
 
-/// Pushes an entered child's `key`: for `ANY` on top (any order finds a hit as well, so
-/// no sort), otherwise into the run above `base` so the nearest comes off first.
-#[inline(always)]
-pub(crate) fn push_child<const ANY: bool>(
-    stack: &mut [MaybeUninit<u64>],
-    base: usize,
-    sp: &mut usize,
-    key: u64,
-) {
-    if ANY {
-        stack[*sp] = MaybeUninit::new(key);
-        *sp += 1;
-    } else {
-        push_sorted(stack, base, sp, key);
-    }
-}
-
 /// Pops entries until one whose distance is at most `horizon`, and returns its
 /// reference; `None` once the stack is empty.
 ///
@@ -357,6 +340,8 @@ unsafe fn trace<const ANY: bool>(
                 unsafe { _mm256_storeu_ps(entries.as_mut_ptr(), enter) };
                 // Every entered child onto the stack, farthest first; leaves as their
                 // parent and slot, so that their box can be read when they are reached.
+                // Any-hit packets go nearest first too: a packet's rays then meet the
+                // surfaces facing them first and leave it sooner (DEVELOPERS.md).
                 let base = sp;
                 let mut m = mask;
                 while m != 0 {
@@ -371,7 +356,7 @@ unsafe fn trace<const ANY: bool>(
                     } else {
                         leaf_entry(current, i)
                     };
-                    push_child::<ANY>(&mut stack, base, &mut sp, pack(entries[i], reference));
+                    push_sorted(&mut stack, base, &mut sp, pack(entries[i], reference));
                 }
             }
         } else {

@@ -16,10 +16,9 @@ use std::mem::MaybeUninit;
 use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, f32_at_least, f32_at_most, leaf_range};
 use crate::packet::{
     Bound, GroupLanes, PACKET, Visits, corner_bound, leaf_entry, leaf_parent, pop_within,
-    push_child,
 };
 use crate::ray::Ray;
-use crate::simd::{STACK, pack, slab_test};
+use crate::simd::{STACK, pack, push_sorted, slab_test};
 use crate::sphere::Sphere;
 
 /// Groups of four rays (one float64 lane each).
@@ -223,7 +222,7 @@ unsafe fn trace<const ANY: bool>(
                 };
                 // Rounded down, so the stack's order and the pop test stay conservative.
                 let key = pack(f32_at_most(entries[i]), reference);
-                push_child::<ANY>(&mut stack, base, &mut sp, key);
+                push_sorted(&mut stack, base, &mut sp, key);
             }
         } else {
             // A leaf: its box against every ray, then each entering ray's spheres.
