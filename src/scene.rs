@@ -634,7 +634,8 @@ impl Scene {
         let (sheared, boxes) = (r.sheared(), r.boxes());
         let mut nearest = Nearest::before(r.tmax);
         let mut found = None;
-        let mut tmax = r.tmax;
+        // Boxes up to the horizon past tmax from the start, as in the AVX2 path.
+        let mut tmax = nearest.horizon();
         self.triangles
             .bvh
             .closest(&boxes, &mut tmax, |first, count, tmax| {
@@ -763,6 +764,8 @@ impl Scene {
         }
         let r = TriangleRay::new(ray, ray.tmax);
         let (sheared, boxes) = (r.sheared(), r.boxes());
+        // Boxes up to the horizon past tmax, as in the AVX2 path.
+        let horizon = Nearest::before(r.tmax).horizon();
         // The slot of a triangle of block `b` that the ray hits, if any.
         let stopped = |b: usize| {
             let mut nearest = Nearest::before(r.tmax);
@@ -774,7 +777,7 @@ impl Scene {
             let mut found = None;
             self.triangles
                 .bvh
-                .any_below(start, &boxes, r.tmax, |first, count| {
+                .any_below(start, &boxes, horizon, |first, count| {
                     found = (first..first + count).find_map(|b| stopped(b as usize));
                     found.is_some()
                 });

@@ -554,6 +554,9 @@ pub unsafe fn any(
         return false;
     }
     let ray = TriangleRay::new(ray, ray.tmax);
+    // Boxes are entered up to the horizon past tmax: a triangle's computed distance can
+    // round below its box's computed entry distance ([`crate::triangle::SEARCH_MARGIN`]).
+    let horizon = Nearest::before(ray.tmax).horizon();
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
     let r = unsafe { lanes(&ray) };
     let found = 'search: {
@@ -565,12 +568,12 @@ pub unsafe fn any(
             }
             let near = hint_roots[b];
             if near != 0
-                && let Some(slot) = unsafe { any_below(nodes, blocks, near, &r, ray.tmax) }
+                && let Some(slot) = unsafe { any_below(nodes, blocks, near, &r, horizon, ray.tmax) }
             {
                 break 'search Some(slot);
             }
         }
-        unsafe { any_below(nodes, blocks, 0, &r, ray.tmax) }
+        unsafe { any_below(nodes, blocks, 0, &r, horizon, ray.tmax) }
     };
     hint.remember_triangle(found);
     found.is_some()
@@ -587,7 +590,8 @@ unsafe fn block_hit(blocks: &[TriangleBlock], b: u32, r: &Lanes, tmax: f32) -> O
     (mask != 0).then(|| b * BLOCK as u32 + mask.trailing_zeros())
 }
 
-/// Any-hit search of the subtree under node `start`: the slot of the first triangle found.
+/// Any-hit search of the subtree under node `start`: the slot of the first triangle found
+/// with `tmin < t < tmax`, entering boxes up to `horizon`.
 ///
 /// # Safety
 /// Only from a function with AVX2 enabled; the tree must fit [`STACK`].
@@ -597,9 +601,10 @@ unsafe fn any_below(
     blocks: &[TriangleBlock],
     start: u32,
     r: &Lanes,
+    horizon: f32,
     tmax: f32,
 ) -> Option<u32> {
-    let t_far = unsafe { _mm256_set1_ps(tmax) };
+    let t_far = unsafe { _mm256_set1_ps(horizon) };
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
     let mut sp = 0usize;
     let mut current = start;

@@ -440,6 +440,112 @@ fn tiny_and_zero_direction_components_find_real_hits() {
 }
 
 #[test]
+fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
+    // Every hit here lies on the faces of the boxes around it (a cube, a flat grid whose
+    // box has no thickness, a lone triangle), where a triangle's computed distance can
+    // round below its box's computed entry distance. Rays aim at the box's corners, edges
+    // and faces from every side and along them, and some end at the hit (tmax 4): those
+    // find it only if every search enters boxes up to the horizon just past tmax, as
+    // closest-hit searches after a first hit do. The scalar closest-hit search and both
+    // any-hit searches entered only up to tmax, and missed hits such a ray found.
+    let grid = placed(&procedural::pixel_grid(4), DMat4::IDENTITY);
+    let cube = placed(&procedural::cube(), DMat4::from_scale(DVec3::splat(2.0)));
+    let lone = vec![[[0.25, -1.0, 3.0], [1.0, 0.5, 3.0], [-0.5, 0.75, 3.0]]];
+    let mut numbers = Numbers(41);
+    for (name, triangles) in [
+        ("grid", grid.triangles),
+        ("cube", cube.triangles),
+        ("lone", lone),
+    ] {
+        let (lo, hi) = triangles
+            .iter()
+            .flatten()
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(point(v)), hi.max(point(v)))
+            });
+        // The box's corners, edge and face points, and the triangles' own vertices and
+        // edge points (on the box too for the grid and the cube).
+        let mut targets = shared_targets(&triangles);
+        for i in 0..27 {
+            let f = [i % 3, i / 3 % 3, i / 9].map(|k| k as f64 / 2.0);
+            targets.push(lo + (hi - lo) * DVec3::from_array(f));
+        }
+        let mut directions: Vec<DVec3> = vec![
+            DVec3::X,
+            DVec3::NEG_X,
+            DVec3::Y,
+            DVec3::NEG_Y,
+            DVec3::Z,
+            DVec3::NEG_Z,
+            DVec3::new(-0.0, 0.0, 1.0),
+            DVec3::new(1.0, 1.0, 0.0),
+            DVec3::new(0.0, -1.0, 1.0),
+            DVec3::ONE,
+            DVec3::new(1.0, -1.0, -1.0),
+        ];
+        for _ in 0..8 {
+            directions.push(numbers.vector(1.0));
+        }
+        let mut rays = Vec::new();
+        for &target in &targets {
+            for &d in &directions {
+                let d = d.normalize();
+                // Toward the target from outside, from the target outward, and ending
+                // at the target (tmax at the hit).
+                rays.push(Ray {
+                    origin: target - d * 4.0,
+                    direction: d,
+                    tmin: 0.0,
+                    tmax: f64::INFINITY,
+                });
+                rays.push(Ray {
+                    origin: target,
+                    direction: d,
+                    tmin: 0.0,
+                    tmax: f64::INFINITY,
+                });
+                rays.push(Ray {
+                    origin: target - d * 4.0,
+                    direction: d,
+                    tmin: 0.0,
+                    tmax: 4.0,
+                });
+            }
+        }
+        let truth: Vec<Option<f32>> = rays.iter().map(|r| brute_force(&triangles, r)).collect();
+        let hits = truth.iter().filter(|t| t.is_some()).count();
+        assert!(
+            hits > rays.len() / 10,
+            "{name}: {hits} of {} rays hit",
+            rays.len()
+        );
+        let mut scene = Scene::build(&SceneGeometry {
+            triangles: triangles.clone(),
+            ..SceneGeometry::default()
+        });
+        for simd in [true, false] {
+            scene.set_simd(simd);
+            let mut hint = AnyHitHint::default();
+            for (r, expected) in rays.iter().zip(&truth) {
+                let got = scene.closest_hit(r).map(|h| h.t as f32);
+                assert_eq!(got, *expected, "{name} simd {simd}: {r:?}");
+                assert_eq!(
+                    scene.any_hit(r),
+                    expected.is_some(),
+                    "{name} simd {simd}: {r:?}"
+                );
+                let hinted = scene.any_hit_hinted(r, &mut hint);
+                assert_eq!(
+                    hinted,
+                    expected.is_some(),
+                    "{name} simd {simd} hinted: {r:?}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
 fn a_tiny_far_sphere_matches_float64_where_the_naive_float32_formula_fails() {
     // Radius 1 at distance 1e4, seen by a camera zoomed 5000x: about 800 pixels.
     let (w, h) = (64u32, 64u32);
