@@ -337,6 +337,8 @@ impl BuildPreset {
 #[derive(Debug, Clone)]
 pub struct Bvh<T> {
     nodes: Vec<Node<T>>,
+    /// The union of the root's slot boxes ([`Bounds::EMPTY`] for an empty tree).
+    bounds: Bounds<T>,
     /// Stack entries a traversal can need: `(WIDTH − 1) · depth + 1`.
     stack_bound: usize,
     depth: usize,
@@ -362,6 +364,7 @@ impl<T: Scalar> Bvh<T> {
         if boxes.is_empty() {
             let empty = Bvh {
                 nodes: Vec::new(),
+                bounds: Bounds::EMPTY,
                 stack_bound: 0,
                 depth: 0,
             };
@@ -446,8 +449,16 @@ impl<T: Scalar> Bvh<T> {
             order.extend_from_slice(&part.order);
             depth = depth.max(part.depth);
         }
+        let bounds = (0..WIDTH).fold(Bounds::EMPTY, |all, slot| {
+            let planes = &nodes[0].planes;
+            all.union(&Bounds {
+                min: [0, 1, 2].map(|axis| planes[0][axis][slot]),
+                max: [0, 1, 2].map(|axis| planes[1][axis][slot]),
+            })
+        });
         let bvh = Bvh {
             nodes,
+            bounds,
             stack_bound: (WIDTH - 1) * depth + 1,
             depth,
         };
@@ -460,6 +471,12 @@ impl<T: Scalar> Bvh<T> {
 
     pub fn nodes(&self) -> &[Node<T>] {
         &self.nodes
+    }
+
+    /// The box around the whole tree: the union of the root's slot boxes, exactly
+    /// ([`Bounds::EMPTY`] when the tree is empty).
+    pub fn bounds(&self) -> Bounds<T> {
+        self.bounds
     }
 
     /// Levels of nodes on the deepest path.
@@ -906,6 +923,13 @@ mod tests {
         // For every preset and leaf size: a box obvhs had padded or shrunk, or a slot
         // pointing at the wrong subtree, fails here. The larger set is split into parts
         // laid out in parallel, whose nodes and leaves are then moved into place.
+        let (empty, _): (Bvh<f32>, _) = Bvh::build(
+            &[],
+            BuildPreset::default().params(4),
+            LeafCost::ONE_BY_ONE,
+            |first, count| (first, count),
+        );
+        assert_eq!(empty.bounds(), Bounds::EMPTY);
         for (count, presets) in [
             (5000, &BuildPreset::ALL[..]),
             (
@@ -927,6 +951,14 @@ mod tests {
                     assert_eq!(order.len(), boxes.len());
                     let mut seen = vec![false; boxes.len()];
                     checked_union(&bvh, 0, &order, &boxes, &mut seen);
+                    // The whole tree's box: every primitive's box united, exactly.
+                    let all = boxes.iter().fold(Bounds::EMPTY, |acc, b| {
+                        acc.union(&Bounds {
+                            min: b.min.to_array(),
+                            max: b.max.to_array(),
+                        })
+                    });
+                    assert_eq!(bvh.bounds(), all, "{preset:?}");
                     assert!(
                         seen.iter().all(|&s| s),
                         "{preset:?}: a primitive is missing"

@@ -448,6 +448,9 @@ fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
     // find it only if every search enters boxes up to the horizon just past tmax, as
     // closest-hit searches after a first hit do. The scalar closest-hit search and both
     // any-hit searches entered only up to tmax, and missed hits such a ray found.
+    // Single rays are also first tested against the box around the whole tree, and end
+    // there if they miss it: that test must never turn away a ray the tree's own node
+    // tests admit, here where every hit lies on that box.
     let grid = placed(&procedural::pixel_grid(4), DMat4::IDENTITY);
     let cube = placed(&procedural::cube(), DMat4::from_scale(DVec3::splat(2.0)));
     let lone = vec![[[0.25, -1.0, 3.0], [1.0, 0.5, 3.0], [-0.5, 0.75, 3.0]]];
