@@ -14,13 +14,13 @@ use std::arch::x86_64::*;
 use std::cell::Cell;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{Bvh, LEAF, WIDTH, leaf_range};
+use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
     STACK, block_test, distance, lanes4, pack, prefetch_child, push_sorted, ray_constants,
     slab_test, tri_lanes,
 };
-use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
+use crate::triangle::{Nearest, SEARCH_MARGIN, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
 pub const PACKET: usize = 64;
@@ -230,10 +230,11 @@ unsafe fn trace<const ANY: bool>(
     );
     let n = rays.len();
     let mut visits = Visits::default();
-    if n == 0 {
+    any.fill(false);
+    // SAFETY: AVX2 is enabled in this function.
+    if n == 0 || unsafe { misses_bounds(&bvh.bounds(), rays) } {
         return Some(visits);
     }
-    any.fill(false);
     // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
     // never hit (their tmax is −∞).
     let mut origin = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
@@ -451,6 +452,88 @@ unsafe fn trace<const ANY: bool>(
             return Some(visits);
         };
         current = next;
+    }
+}
+
+/// Whether a packet surely misses `bounds` (the box around the whole tree): its rays share
+/// the signs of their direction, none has a NaN, and the packet's test of that box fails.
+/// The ranges come from one pass over the rays, before their per-ray set-up: the reciprocal
+/// of a direction is monotone within a sign, so `1/d` at the range's ends is exactly the
+/// range of the rays' own reciprocals, and the test is the node test's corner bounds,
+/// monotone in the planes. A packet that enters some child of the root therefore passes.
+/// Sky regions of an image end here, where they paid the per-ray set-up before.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn misses_bounds(bounds: &Bounds<f32>, rays: &[TriangleRay]) -> bool {
+    // SAFETY: AVX2 is enabled in the caller; a `TriangleRay` is eight floats
+    // (`#[repr(C)]`): origin, direction, tmin, tmax.
+    unsafe {
+        let (mut lo, mut hi) = (
+            _mm256_set1_ps(f32::INFINITY),
+            _mm256_set1_ps(f32::NEG_INFINITY),
+        );
+        let (mut all, mut some) = (
+            _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+            _mm256_setzero_ps(),
+        );
+        let mut nan = _mm256_setzero_ps();
+        for ray in rays {
+            let v = _mm256_loadu_ps((ray as *const TriangleRay).cast::<f32>());
+            (lo, hi) = (_mm256_min_ps(lo, v), _mm256_max_ps(hi, v));
+            (all, some) = (_mm256_and_ps(all, v), _mm256_or_ps(some, v));
+            nan = _mm256_or_ps(nan, _mm256_cmp_ps::<_CMP_UNORD_Q>(v, v));
+        }
+        // Sign bits of the direction (lanes 3–5): set in every ray, or in none.
+        let (all, some) = (
+            _mm256_movemask_ps(all) >> 3 & 7,
+            _mm256_movemask_ps(some) >> 3 & 7,
+        );
+        if all != some || _mm256_movemask_ps(nan) != 0 {
+            return false;
+        }
+        let mut l = [0f32; 8];
+        let mut h = [0f32; 8];
+        _mm256_storeu_ps(l.as_mut_ptr(), lo);
+        _mm256_storeu_ps(h.as_mut_ptr(), hi);
+        // 1/d decreases with d within a sign, so the smallest reciprocal is the largest d's.
+        let inv_lo = _mm_div_ps(_mm_set1_ps(1.0), _mm_setr_ps(h[3], h[4], h[5], 1.0));
+        let inv_hi = _mm_div_ps(_mm_set1_ps(1.0), _mm_setr_ps(l[3], l[4], l[5], 1.0));
+        let scale = _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE);
+        let (inv_lo, inv_hi) = (lanes4(inv_lo), lanes4(inv_hi));
+        let (far_lo, far_hi) = (
+            lanes4(_mm_mul_ps(
+                _mm_setr_ps(inv_lo[0], inv_lo[1], inv_lo[2], 0.0),
+                scale,
+            )),
+            lanes4(_mm_mul_ps(
+                _mm_setr_ps(inv_hi[0], inv_hi[1], inv_hi[2], 0.0),
+                scale,
+            )),
+        );
+        // As the root's test: from the smallest tmin to the largest tmax's horizon.
+        let mut enter = _mm256_set1_ps(l[6]);
+        let mut exit = _mm256_set1_ps(h[7] * SEARCH_MARGIN);
+        for a in 0..3 {
+            let negative = all >> a & 1 != 0;
+            let (near, far) = if negative {
+                (bounds.max[a], bounds.min[a])
+            } else {
+                (bounds.min[a], bounds.max[a])
+            };
+            let o = (l[a], h[a]);
+            let lower = corners(
+                _mm256_set1_ps(near),
+                o,
+                (inv_lo[a], inv_hi[a]),
+                Bound::Lower,
+            );
+            let upper = corners(_mm256_set1_ps(far), o, (far_lo[a], far_hi[a]), Bound::Upper);
+            enter = _mm256_max_ps(lower, enter);
+            exit = _mm256_min_ps(upper, exit);
+        }
+        _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) == 0
     }
 }
 

@@ -926,8 +926,10 @@ pub fn nearest_plane(planes: &[Plane], ray: &Ray) -> Option<Hit> {
 }
 
 /// A float64 ray rounded for the float32 triangle path: origin and direction to nearest,
-/// `tmin` down and `tmax` up.
+/// `tmin` down and `tmax` up. Laid out as eight floats in this order, which packets read
+/// with one load ([`crate::packet`]).
 #[derive(Debug, Clone, Copy)]
+#[repr(C)]
 pub struct TriangleRay {
     pub origin: [f32; 3],
     pub direction: [f32; 3],

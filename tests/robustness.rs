@@ -448,9 +448,9 @@ fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
     // find it only if every search enters boxes up to the horizon just past tmax, as
     // closest-hit searches after a first hit do. The scalar closest-hit search and both
     // any-hit searches entered only up to tmax, and missed hits such a ray found.
-    // Single rays are also first tested against the box around the whole tree, and end
-    // there if they miss it: that test must never turn away a ray the tree's own node
-    // tests admit, here where every hit lies on that box.
+    // Single rays and packets are also first tested against the box around the whole
+    // tree, and end there if they miss it: that test must never turn away a ray the
+    // tree's own node tests admit, here where every hit lies on that box.
     let grid = placed(&procedural::pixel_grid(4), DMat4::IDENTITY);
     let cube = placed(&procedural::cube(), DMat4::from_scale(DVec3::splat(2.0)));
     let lone = vec![[[0.25, -1.0, 3.0], [1.0, 0.5, 3.0], [-0.5, 0.75, 3.0]]];
@@ -543,6 +543,49 @@ fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
                     expected.is_some(),
                     "{name} simd {simd} hinted: {r:?}"
                 );
+            }
+        }
+        // Packets, which test that box first too: each ray above alone (a packet's bounds
+        // are then exactly its own), and parallel rays toward up to 64 targets each,
+        // ending at them or not.
+        scene.set_simd(true);
+        scene.set_adaptive_packets(false);
+        for (r, expected) in rays.iter().zip(&truth) {
+            assert!(!scene.uses_simd() || scene.traces_as_packet(std::slice::from_ref(r)));
+            let (closest, any) = batch_queries(&scene, std::slice::from_ref(r));
+            assert_eq!(
+                closest[0].map(|h| h.t as f32),
+                *expected,
+                "{name} packet of one: {r:?}"
+            );
+            assert_eq!(
+                any[0],
+                expected.is_some(),
+                "{name} packet of one, any: {r:?}"
+            );
+        }
+        for &d in &directions {
+            let d = d.normalize();
+            for chunk in targets.chunks(64) {
+                for tmax in [f64::INFINITY, 4.0] {
+                    let group: Vec<Ray> = chunk
+                        .iter()
+                        .map(|&target| Ray {
+                            origin: target - d * 4.0,
+                            direction: d,
+                            tmin: 0.0,
+                            tmax,
+                        })
+                        .collect();
+                    assert!(!scene.uses_simd() || scene.traces_as_packet(&group));
+                    let (closest, any) = batch_queries(&scene, &group);
+                    for (i, r) in group.iter().enumerate() {
+                        let expected = brute_force(&triangles, r);
+                        let got = closest[i].map(|h| h.t as f32);
+                        assert_eq!(got, expected, "{name} packet: {r:?}");
+                        assert_eq!(any[i], expected.is_some(), "{name} packet any: {r:?}");
+                    }
+                }
             }
         }
     }
