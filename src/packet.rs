@@ -498,20 +498,17 @@ unsafe fn misses_bounds(bounds: &Bounds<f32>, rays: &[TriangleRay]) -> bool {
         _mm256_storeu_ps(l.as_mut_ptr(), lo);
         _mm256_storeu_ps(h.as_mut_ptr(), hi);
         // 1/d decreases with d within a sign, so the smallest reciprocal is the largest d's.
-        let inv_lo = _mm_div_ps(_mm_set1_ps(1.0), _mm_setr_ps(h[3], h[4], h[5], 1.0));
-        let inv_hi = _mm_div_ps(_mm_set1_ps(1.0), _mm_setr_ps(l[3], l[4], l[5], 1.0));
+        let one = _mm_set1_ps(1.0);
+        let inv_lo = _mm_div_ps(one, _mm_setr_ps(h[3], h[4], h[5], 1.0));
+        let inv_hi = _mm_div_ps(one, _mm_setr_ps(l[3], l[4], l[5], 1.0));
         let scale = _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE);
-        let (inv_lo, inv_hi) = (lanes4(inv_lo), lanes4(inv_hi));
-        let (far_lo, far_hi) = (
-            lanes4(_mm_mul_ps(
-                _mm_setr_ps(inv_lo[0], inv_lo[1], inv_lo[2], 0.0),
-                scale,
-            )),
-            lanes4(_mm_mul_ps(
-                _mm_setr_ps(inv_hi[0], inv_hi[1], inv_hi[2], 0.0),
-                scale,
-            )),
-        );
+        let [inv_lo, inv_hi, far_lo, far_hi] = [
+            inv_lo,
+            inv_hi,
+            _mm_mul_ps(inv_lo, scale),
+            _mm_mul_ps(inv_hi, scale),
+        ]
+        .map(lanes4);
         // As the root's test: from the smallest tmin to the largest tmax's horizon.
         let mut enter = _mm256_set1_ps(l[6]);
         let mut exit = _mm256_set1_ps(h[7] * SEARCH_MARGIN);

@@ -240,22 +240,24 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
             },
             preset,
         );
-        let mut hint = AnyHitHint::default();
-        for (r, expected) in rays.iter().zip(&truth) {
-            let got = scene.closest_hit(r).map(|h| h.t as f32);
-            assert_eq!(got, *expected, "{preset:?}: {r:?}");
-            assert_eq!(
-                scene.any_hit(r),
-                expected.is_some(),
-                "{preset:?} any-hit: {r:?}"
-            );
-            // The previous ray's hint: mostly a block and subtree this ray misses.
-            assert_eq!(
-                scene.any_hit_hinted(r, &mut hint),
-                expected.is_some(),
-                "{preset:?} hinted any-hit: {r:?}"
-            );
-        }
+        assert_single_rays_find(&scene, &rays, &truth, &format!("{preset:?}"));
+    }
+}
+
+/// Asserts that each ray's closest hit, any hit, and any hit with one hint carried from
+/// ray to ray (mostly naming a block and subtree the next ray misses) are `truth`'s.
+fn assert_single_rays_find(scene: &Scene, rays: &[Ray], truth: &[Option<f32>], label: &str) {
+    let mut hint = AnyHitHint::default();
+    for (r, expected) in rays.iter().zip(truth) {
+        let got = scene.closest_hit(r).map(|h| h.t as f32);
+        assert_eq!(got, *expected, "{label}: {r:?}");
+        assert_eq!(
+            scene.any_hit(r),
+            expected.is_some(),
+            "{label} any-hit: {r:?}"
+        );
+        let hinted = scene.any_hit_hinted(r, &mut hint);
+        assert_eq!(hinted, expected.is_some(), "{label} hinted any-hit: {r:?}");
     }
 }
 
@@ -528,22 +530,7 @@ fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
         });
         for simd in [true, false] {
             scene.set_simd(simd);
-            let mut hint = AnyHitHint::default();
-            for (r, expected) in rays.iter().zip(&truth) {
-                let got = scene.closest_hit(r).map(|h| h.t as f32);
-                assert_eq!(got, *expected, "{name} simd {simd}: {r:?}");
-                assert_eq!(
-                    scene.any_hit(r),
-                    expected.is_some(),
-                    "{name} simd {simd}: {r:?}"
-                );
-                let hinted = scene.any_hit_hinted(r, &mut hint);
-                assert_eq!(
-                    hinted,
-                    expected.is_some(),
-                    "{name} simd {simd} hinted: {r:?}"
-                );
-            }
+            assert_single_rays_find(&scene, &rays, &truth, &format!("{name} simd {simd}"));
         }
         // Packets, which test that box first too: each ray above alone (a packet's bounds
         // are then exactly its own), and parallel rays toward up to 64 targets each,
