@@ -20,7 +20,7 @@ use crate::simd::{
     STACK, block_test, distance, lanes4, pack, prefetch_child, push_sorted, ray_constants,
     slab_test, tri_lanes,
 };
-use crate::triangle::{Nearest, SEARCH_MARGIN, ShearedRay, TriangleBlock, TriangleHit};
+use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
 pub const PACKET: usize = 64;
@@ -179,7 +179,7 @@ impl Rows {
 /// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
 /// called for each ray `i` with a triangle hit, the nearest (as [`crate::simd::closest`]
 /// finds it). Returns what the traversal visited, or `None`, calling nothing, when the
-/// rays' directions differ in sign on some axis.
+/// rays' directions differ in sign on some axis or a ray has a NaN.
 ///
 /// # Safety
 /// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
@@ -197,7 +197,7 @@ pub unsafe fn closest(
 /// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
 /// together; rays leave the packet as soon as they hit. Returns what the traversal
 /// visited, or `None`, touching nothing, when the rays' directions differ in sign on some
-/// axis.
+/// axis or a ray has a NaN.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -230,9 +230,14 @@ unsafe fn trace<const ANY: bool>(
     );
     let n = rays.len();
     let mut visits = Visits::default();
-    any.fill(false);
+    if n == 0 {
+        return Some(visits);
+    }
     // SAFETY: AVX2 is enabled in this function.
-    if n == 0 || unsafe { misses_bounds(&bvh.bounds(), rays) } {
+    let packet = unsafe { PacketBounds::of(rays) }?;
+    any.fill(false);
+    // SAFETY: as above.
+    if unsafe { packet.misses(&bvh.bounds()) } {
         return Some(visits);
     }
     // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
@@ -244,14 +249,8 @@ unsafe fn trace<const ANY: bool>(
     let mut t_box = Rows::ZERO;
     let mut sheared = [MaybeUninit::<ShearedRay>::uninit(); PACKET];
     let mut nearest = [Nearest::before(f32::NEG_INFINITY); PACKET];
-    // The packet's ranges over its live rays: origin, reciprocal direction (near and far
-    // planes), smallest tmin, largest tmax. Lanes: x, y, z (and a fourth, unused).
-    let (mut o_lo, mut o_hi) = (_mm_set1_ps(f32::INFINITY), _mm_set1_ps(f32::NEG_INFINITY));
-    let (mut i_lo, mut i_hi) = (o_lo, o_hi);
-    let (mut f_lo, mut f_hi) = (o_lo, o_hi);
-    let mut tmin_lo = f32::INFINITY;
-    let mut packet_tmax = f32::NEG_INFINITY;
-    let mut octant = [0usize; 3];
+    // The largest horizon over the rays still searching.
+    let mut packet_tmax = packet.horizon;
     // Each ray's division results in registers (one 8-lane division, as for a single
     // ray), written out lane by lane: rereading values stored field by field would stall.
     let mut values = ([0f32; 4], [0f32; 4], [0f32; 4], 0f32);
@@ -259,19 +258,9 @@ unsafe fn trace<const ANY: bool>(
         let (r, l) = (k / 8, k % 8);
         if k < n {
             let ray = &rays[k];
-            let near = ray.direction.map(|d| usize::from(d.is_sign_negative()));
-            if k == 0 {
-                octant = near;
-            } else if near != octant {
-                return None;
-            }
             // SAFETY: AVX2 is enabled in this function.
             let c = unsafe { ray_constants(ray.direction) };
             let [ox, oy, oz] = ray.origin;
-            let o = _mm_setr_ps(ox, oy, oz, 0.0);
-            (o_lo, o_hi) = (_mm_min_ps(o_lo, o), _mm_max_ps(o_hi, o));
-            (i_lo, i_hi) = (_mm_min_ps(i_lo, c.inv), _mm_max_ps(i_hi, c.inv));
-            (f_lo, f_hi) = (_mm_min_ps(f_lo, c.inv_far), _mm_max_ps(f_hi, c.inv_far));
             let shear = lanes4(c.shear);
             values = (
                 [ox, oy, oz, 0.0],
@@ -279,9 +268,7 @@ unsafe fn trace<const ANY: bool>(
                 lanes4(c.inv_far),
                 ray.tmin,
             );
-            tmin_lo = tmin_lo.min(ray.tmin);
             nearest[k] = Nearest::before(ray.tmax);
-            packet_tmax = packet_tmax.max(nearest[k].horizon());
             let [kx, ky, kz] = c.k;
             sheared[k].write(ShearedRay {
                 origin: ray.origin,
@@ -302,11 +289,6 @@ unsafe fn trace<const ANY: bool>(
         tmin.0[r][l] = values.3;
         t_box.0[r][l] = nearest[k].horizon();
     }
-    let range = |lo: __m128, hi: __m128| {
-        let (l, h) = (lanes4(lo), lanes4(hi));
-        [0, 1, 2].map(|a| (l[a], h[a]))
-    };
-    let (o_range, i_range, f_range) = (range(o_lo, o_hi), range(i_lo, i_hi), range(f_lo, f_hi));
     let nodes = bvh.nodes();
     if nodes.is_empty() {
         return Some(visits);
@@ -314,8 +296,8 @@ unsafe fn trace<const ANY: bool>(
     let mut live = n;
     let mut found: [Option<TriangleHit>; PACKET] = [None; PACKET];
     let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
-    let near: [usize; 3] = [0, 1, 2].map(|a| offset(octant[a], a));
-    let far: [usize; 3] = [0, 1, 2].map(|a| offset(1 - octant[a], a));
+    let near: [usize; 3] = [0, 1, 2].map(|a| offset(packet.octant[a], a));
+    let far: [usize; 3] = [0, 1, 2].map(|a| offset(1 - packet.octant[a], a));
 
     let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
     let mut sp = 0usize;
@@ -326,11 +308,12 @@ unsafe fn trace<const ANY: bool>(
             let planes = node.planes.as_ptr().cast::<f32>();
             // SAFETY: plane offsets are below 6 × 8 floats of a 64-byte aligned node.
             let load = |offset: usize| unsafe { _mm256_load_ps(planes.add(offset)) };
-            let mut enter = _mm256_set1_ps(tmin_lo);
+            let mut enter = _mm256_set1_ps(packet.tmin);
             let mut exit = _mm256_set1_ps(packet_tmax);
             for a in 0..3 {
-                let lower = corners(load(near[a]), o_range[a], i_range[a], Bound::Lower);
-                let upper = corners(load(far[a]), o_range[a], f_range[a], Bound::Upper);
+                let (o, i, f) = (packet.origin[a], packet.inv[a], packet.inv_far[a]);
+                let lower = corners(load(near[a]), o, i, Bound::Lower);
+                let upper = corners(load(far[a]), o, f, Bound::Upper);
                 enter = _mm256_max_ps(lower, enter);
                 exit = _mm256_min_ps(upper, exit);
             }
@@ -455,82 +438,108 @@ unsafe fn trace<const ANY: bool>(
     }
 }
 
-/// Whether a packet surely misses `bounds` (the box around the whole tree): its rays share
-/// the signs of their direction, none has a NaN, and the packet's test of that box fails.
-/// The ranges come from one pass over the rays, before their per-ray set-up: the reciprocal
-/// of a direction is monotone within a sign, so `1/d` at the range's ends is exactly the
-/// range of the rays' own reciprocals, and the test is the node test's corner bounds,
-/// monotone in the planes. A packet that enters some child of the root therefore passes.
-/// Sky regions of an image end here, where they paid the per-ray set-up before.
-///
-/// # Safety
-/// Only from a function with AVX2 enabled.
-#[inline(always)]
-unsafe fn misses_bounds(bounds: &Bounds<f32>, rays: &[TriangleRay]) -> bool {
-    // SAFETY: AVX2 is enabled in the caller; a `TriangleRay` is eight floats
-    // (`#[repr(C)]`): origin, direction, tmin, tmax.
-    unsafe {
-        let (mut lo, mut hi) = (
-            _mm256_set1_ps(f32::INFINITY),
-            _mm256_set1_ps(f32::NEG_INFINITY),
-        );
-        let (mut all, mut some) = (
-            _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
-            _mm256_setzero_ps(),
-        );
-        let mut nan = _mm256_setzero_ps();
-        for ray in rays {
-            let v = _mm256_loadu_ps((ray as *const TriangleRay).cast::<f32>());
-            (lo, hi) = (_mm256_min_ps(lo, v), _mm256_max_ps(hi, v));
-            (all, some) = (_mm256_and_ps(all, v), _mm256_or_ps(some, v));
-            nan = _mm256_or_ps(nan, _mm256_cmp_ps::<_CMP_UNORD_Q>(v, v));
-        }
-        // Sign bits of the direction (lanes 3–5): set in every ray, or in none.
-        let (all, some) = (
-            _mm256_movemask_ps(all) >> 3 & 7,
-            _mm256_movemask_ps(some) >> 3 & 7,
-        );
-        if all != some || _mm256_movemask_ps(nan) != 0 {
-            return false;
-        }
-        let mut l = [0f32; 8];
-        let mut h = [0f32; 8];
-        _mm256_storeu_ps(l.as_mut_ptr(), lo);
-        _mm256_storeu_ps(h.as_mut_ptr(), hi);
-        // 1/d decreases with d within a sign, so the smallest reciprocal is the largest d's.
-        let one = _mm_set1_ps(1.0);
-        let inv_lo = _mm_div_ps(one, _mm_setr_ps(h[3], h[4], h[5], 1.0));
-        let inv_hi = _mm_div_ps(one, _mm_setr_ps(l[3], l[4], l[5], 1.0));
-        let scale = _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE);
-        let [inv_lo, inv_hi, far_lo, far_hi] = [
-            inv_lo,
-            inv_hi,
-            _mm_mul_ps(inv_lo, scale),
-            _mm_mul_ps(inv_hi, scale),
-        ]
-        .map(lanes4);
-        // As the root's test: from the smallest tmin to the largest tmax's horizon.
-        let mut enter = _mm256_set1_ps(l[6]);
-        let mut exit = _mm256_set1_ps(h[7] * SEARCH_MARGIN);
-        for a in 0..3 {
-            let negative = all >> a & 1 != 0;
-            let (near, far) = if negative {
-                (bounds.max[a], bounds.min[a])
-            } else {
-                (bounds.min[a], bounds.max[a])
-            };
-            let o = (l[a], h[a]);
-            let lower = corners(
-                _mm256_set1_ps(near),
-                o,
-                (inv_lo[a], inv_hi[a]),
-                Bound::Lower,
+/// A packet's ranges over its rays, per axis `(smallest, largest)`: origin, reciprocal
+/// direction for near planes and for far ones; the smallest `tmin` and the largest
+/// horizon; and the octant its directions share (1 where negative).
+struct PacketBounds {
+    octant: [usize; 3],
+    origin: [(f32, f32); 3],
+    inv: [(f32, f32); 3],
+    inv_far: [(f32, f32); 3],
+    tmin: f32,
+    horizon: f32,
+}
+
+impl PacketBounds {
+    /// The ranges from one pass over the rays, before their per-ray set-up, or `None`
+    /// when the rays' direction signs differ or a value is NaN (they are then traced one
+    /// by one). The reciprocal of a direction is monotone within a sign, so `1/d` at the
+    /// ends of `d`'s range is exactly the range of the rays' own reciprocals.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    unsafe fn of(rays: &[TriangleRay]) -> Option<PacketBounds> {
+        // SAFETY: AVX2 is enabled in the caller; a `TriangleRay` is eight floats
+        // (`#[repr(C)]`): origin, direction, tmin, tmax.
+        unsafe {
+            let (mut lo, mut hi) = (
+                _mm256_set1_ps(f32::INFINITY),
+                _mm256_set1_ps(f32::NEG_INFINITY),
             );
-            let upper = corners(_mm256_set1_ps(far), o, (far_lo[a], far_hi[a]), Bound::Upper);
-            enter = _mm256_max_ps(lower, enter);
-            exit = _mm256_min_ps(upper, exit);
+            let (mut all, mut some) = (
+                _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+                _mm256_setzero_ps(),
+            );
+            let mut nan = _mm256_setzero_ps();
+            for ray in rays {
+                let v = _mm256_loadu_ps((ray as *const TriangleRay).cast::<f32>());
+                (lo, hi) = (_mm256_min_ps(lo, v), _mm256_max_ps(hi, v));
+                (all, some) = (_mm256_and_ps(all, v), _mm256_or_ps(some, v));
+                nan = _mm256_or_ps(nan, _mm256_cmp_ps::<_CMP_UNORD_Q>(v, v));
+            }
+            // Sign bits of the direction (lanes 3–5): set in every ray, or in none.
+            let (all, some) = (
+                _mm256_movemask_ps(all) >> 3 & 7,
+                _mm256_movemask_ps(some) >> 3 & 7,
+            );
+            if all != some || _mm256_movemask_ps(nan) != 0 {
+                return None;
+            }
+            let mut l = [0f32; 8];
+            let mut h = [0f32; 8];
+            _mm256_storeu_ps(l.as_mut_ptr(), lo);
+            _mm256_storeu_ps(h.as_mut_ptr(), hi);
+            // 1/d decreases with d within a sign: the smallest reciprocal is the largest d's.
+            let one = _mm_set1_ps(1.0);
+            let inv_lo = _mm_div_ps(one, _mm_setr_ps(h[3], h[4], h[5], 1.0));
+            let inv_hi = _mm_div_ps(one, _mm_setr_ps(l[3], l[4], l[5], 1.0));
+            let scale = _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE);
+            let [inv_lo, inv_hi, far_lo, far_hi] = [
+                inv_lo,
+                inv_hi,
+                _mm_mul_ps(inv_lo, scale),
+                _mm_mul_ps(inv_hi, scale),
+            ]
+            .map(lanes4);
+            Some(PacketBounds {
+                octant: [0, 1, 2].map(|a| (all >> a & 1) as usize),
+                origin: [0, 1, 2].map(|a| (l[a], h[a])),
+                inv: [0, 1, 2].map(|a| (inv_lo[a], inv_hi[a])),
+                inv_far: [0, 1, 2].map(|a| (far_lo[a], far_hi[a])),
+                tmin: l[6],
+                horizon: Nearest::before(h[7]).horizon(),
+            })
         }
-        _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) == 0
+    }
+
+    /// Whether the packet surely misses `bounds` (the box around the whole tree), by the
+    /// node test's corner bounds, which are monotone in the planes: a packet that enters
+    /// some child of the root passes. Sky regions of an image end here, where they paid
+    /// the per-ray set-up before.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    unsafe fn misses(&self, bounds: &Bounds<f32>) -> bool {
+        // SAFETY: AVX2 is enabled in the caller.
+        unsafe {
+            let mut enter = _mm256_set1_ps(self.tmin);
+            let mut exit = _mm256_set1_ps(self.horizon);
+            for a in 0..3 {
+                let (near, far) = if self.octant[a] == 1 {
+                    (bounds.max[a], bounds.min[a])
+                } else {
+                    (bounds.min[a], bounds.max[a])
+                };
+                let (o, i, f) = (self.origin[a], self.inv[a], self.inv_far[a]);
+                let lower = corners(_mm256_set1_ps(near), o, i, Bound::Lower);
+                let upper = corners(_mm256_set1_ps(far), o, f, Bound::Upper);
+                enter = _mm256_max_ps(lower, enter);
+                exit = _mm256_min_ps(upper, exit);
+            }
+            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) == 0
+        }
     }
 }
 
