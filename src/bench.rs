@@ -5,8 +5,10 @@
 //! whole job (read, build, render, write) also runs through the Embree backend, in turns
 //! with ours.
 //!
-//! Every figure is the median of several runs. Timing is never asserted in tests; the
-//! figures go to BENCHMARKS.md with the command that produced them.
+//! Every figure is the median of several runs. Trace passes run in rounds, every query of
+//! both tracers once per round, and builds alternate between the tracers, so that a slow
+//! spell of the machine lands on all columns alike instead of on one. Timing is never
+//! asserted in tests; the figures go to BENCHMARKS.md with the command that produced them.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -177,7 +179,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         }));
     }
 
-    let runs = if options.quick { 3 } else { 5 };
+    let runs = if options.quick { 3 } else { 7 };
     let mut figures = Vec::new();
     for scene in scenes {
         figures.push(trace_scene(scene()?, options, runs)?);
@@ -297,59 +299,78 @@ fn trace_scene(
     // The first build sets the peak (loading and building); later ones reuse the memory.
     let start = Instant::now();
     let mut ours = Scene::build(&scene.geometry);
-    let mut build_times = vec![start.elapsed().as_secs_f64()];
+    let first_build = start.elapsed().as_secs_f64();
     let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
     });
-    for _ in 1..BUILDS {
-        drop(ours);
-        let start = Instant::now();
-        ours = Scene::build(&scene.geometry);
-        build_times.push(start.elapsed().as_secs_f64());
-    }
-    let build_s = median_of(build_times);
-    let scene_bytes_per_triangle = ours.counts().accel_bytes as f64 / triangles.max(1) as f64;
     let rays = camera_rays(&scene);
     let hits = count_hits(&ours, &rays, |t, r| t.closest_hit(r).is_some());
-    let raybatch = TracerFigures {
-        build_s,
-        throughput: throughput(&ours, &rays, &options.threads, runs)?,
-    };
-    drop(ours);
+    let pools = options
+        .threads
+        .iter()
+        .map(|&n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .map_err(|e| e.to_string())
+        })
+        .collect::<Result<Vec<_>, _>>()?;
 
-    let embree = if options.embree {
+    #[cfg(not(feature = "embree"))]
+    if options.embree {
+        return Err("this build has no Embree backend (build with --features embree)".to_string());
+    }
+    let (raybatch, embree) = {
         #[cfg(feature = "embree")]
-        {
-            let mut build_times = Vec::new();
-            let mut reference = None;
-            for _ in 0..BUILDS {
+        let mut reference = None;
+        // Builds in turns (ours, then Embree's), so that drift hits both alike.
+        let mut build_times = [vec![first_build], Vec::new()];
+        for round in 0..BUILDS {
+            if round > 0 {
+                drop(ours);
+                let start = Instant::now();
+                ours = Scene::build(&scene.geometry);
+                build_times[0].push(start.elapsed().as_secs_f64());
+            }
+            #[cfg(feature = "embree")]
+            if options.embree {
                 drop(reference.take());
                 let start = Instant::now();
                 reference = Some(
                     crate::embree::EmbreeScene::build(&scene.geometry)
                         .map_err(|e| e.to_string())?,
                 );
-                build_times.push(start.elapsed().as_secs_f64());
+                build_times[1].push(start.elapsed().as_secs_f64());
             }
-            let reference = reference.expect("built above");
-            let build_s = median_of(build_times);
-            let reference_hits = count_hits(&reference, &rays, |t, r| t.closest_hit(r).is_some());
+        }
+        let ours_pass = |query| trace_pass(&ours, &rays, query);
+        #[cfg(feature = "embree")]
+        let reference_pass = reference.as_ref().map(|reference| {
+            let reference_hits = count_hits(reference, &rays, |t, r| t.closest_hit(r).is_some());
             if reference_hits != hits {
                 eprintln!(
                     "note: {}: raybatch hits {hits} rays, Embree {reference_hits}",
                     scene.name
                 );
             }
-            Some(TracerFigures {
-                build_s,
-                throughput: throughput(&reference, &rays, &options.threads, runs)?,
-            })
-        }
+            let rays = &rays;
+            move |query| trace_pass(reference, rays, query)
+        });
         #[cfg(not(feature = "embree"))]
-        return Err("this build has no Embree backend (build with --features embree)".to_string());
-    } else {
-        None
+        let reference_pass: Option<fn(Query) -> usize> = None;
+        let tracers: Vec<&(dyn Fn(Query) -> usize + Sync)> = std::iter::once(&ours_pass as _)
+            .chain(reference_pass.as_ref().map(|pass| pass as _))
+            .collect();
+        let mut figures = throughputs(&tracers, rays.len(), &options.threads, &pools, runs)
+            .into_iter()
+            .zip(build_times)
+            .map(|(throughput, times)| TracerFigures {
+                build_s: median_of(times),
+                throughput,
+            });
+        (figures.next().expect("ours is traced"), figures.next())
     };
+    let scene_bytes_per_triangle = ours.counts().accel_bytes as f64 / triangles.max(1) as f64;
 
     Ok(SceneFigures {
         name: scene.name,
@@ -363,6 +384,37 @@ fn trace_scene(
         raybatch,
         embree,
     })
+}
+
+/// The queries a throughput column times.
+#[derive(Debug, Clone, Copy)]
+enum Query {
+    Closest,
+    ClosestBatch,
+    AnyHinted,
+    Any,
+    AnyBatch,
+}
+
+impl Query {
+    const ALL: [Query; 5] = [
+        Query::Closest,
+        Query::ClosestBatch,
+        Query::AnyHinted,
+        Query::Any,
+        Query::AnyBatch,
+    ];
+}
+
+/// Traces every ray once with `query`; returns the hit count (so the work is not elided).
+fn trace_pass<T: Tracer>(tracer: &T, rays: &[Ray], query: Query) -> usize {
+    match query {
+        Query::Closest => count_hits(tracer, rays, |t, r| t.closest_hit(r).is_some()),
+        Query::ClosestBatch => count_batch_hits(tracer, rays, false),
+        Query::AnyHinted => count_hinted_hits(tracer, rays),
+        Query::Any => count_hits(tracer, rays, |t, r| t.any_hit(r)),
+        Query::AnyBatch => count_batch_hits(tracer, rays, true),
+    }
 }
 
 fn count_hits<T: Tracer>(tracer: &T, rays: &[Ray], hit: impl Fn(&T, &Ray) -> bool + Sync) -> usize {
@@ -405,34 +457,53 @@ fn count_batch_hits<T: Tracer>(tracer: &T, rays: &[Ray], any: bool) -> usize {
         .sum()
 }
 
-fn throughput<T: Tracer>(
-    tracer: &T,
-    rays: &[Ray],
+/// Each tracer's throughput at each thread count. Passes run in rounds: one round times
+/// every query at every thread count once, the tracers in turns for each, so a neighbour
+/// that slows the machine for a while slows the columns alike rather than one of them.
+/// The first round warms up and is not counted; each figure is the median of `runs`.
+fn throughputs(
+    tracers: &[&(dyn Fn(Query) -> usize + Sync)],
+    rays: usize,
     threads: &[usize],
+    pools: &[rayon::ThreadPool],
     runs: usize,
-) -> Result<Vec<Throughput>, String> {
-    let mut out = Vec::new();
-    for &n in threads {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
-            .build()
-            .map_err(|e| e.to_string())?;
-        let rate = |pass: &(dyn Fn() -> usize + Sync)| {
-            let seconds = median(runs, || {
-                pool.install(|| std::hint::black_box(pass()));
-            });
-            rays.len() as f64 / seconds / 1e6
-        };
-        out.push(Throughput {
-            threads: n,
-            closest: rate(&|| count_hits(tracer, rays, |t, r| t.closest_hit(r).is_some())),
-            closest_batch: rate(&|| count_batch_hits(tracer, rays, false)),
-            any: rate(&|| count_hinted_hits(tracer, rays)),
-            any_unhinted: rate(&|| count_hits(tracer, rays, |t, r| t.any_hit(r))),
-            any_batch: rate(&|| count_batch_hits(tracer, rays, true)),
-        });
+) -> Vec<Vec<Throughput>> {
+    // times[tracer][thread count][query]
+    let mut times = vec![vec![Query::ALL.map(|_| Vec::new()); threads.len()]; tracers.len()];
+    for round in 0..=runs.max(1) {
+        for (p, pool) in pools.iter().enumerate() {
+            for (q, &query) in Query::ALL.iter().enumerate() {
+                for (t, pass) in tracers.iter().enumerate() {
+                    let start = Instant::now();
+                    pool.install(|| std::hint::black_box(pass(query)));
+                    if round > 0 {
+                        times[t][p][q].push(start.elapsed().as_secs_f64());
+                    }
+                }
+            }
+        }
     }
-    Ok(out)
+    times
+        .into_iter()
+        .map(|per_thread| {
+            per_thread
+                .into_iter()
+                .zip(threads)
+                .map(|(columns, &threads)| {
+                    let [closest, closest_batch, any, any_unhinted, any_batch] =
+                        columns.map(|t| rays as f64 / median_of(t) / 1e6);
+                    Throughput {
+                        threads,
+                        closest,
+                        closest_batch,
+                        any,
+                        any_unhinted,
+                        any_batch,
+                    }
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// The median duration of `runs` calls, in seconds (after one warm-up call).

@@ -121,3 +121,48 @@ fn the_committed_models_are_what_the_generator_writes() {
         );
     }
 }
+
+#[test]
+fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits() {
+    let dir = Dir::new();
+    let run = dir.raybatch(&[
+        "bench",
+        "--quick",
+        "--only",
+        "canonical",
+        "--threads",
+        "1,2",
+        "--json",
+    ]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let report: serde_json::Value = serde_json::from_str(&run.stdout).expect("JSON on stdout");
+    let scenes = report["scenes"].as_array().expect("scenes");
+    assert_eq!(scenes.len(), 1, "{report}");
+    let scene = &scenes[0];
+    assert_eq!(scene["name"], "canonical");
+    assert_eq!(scene["rays"], 640 * 480);
+    assert_eq!(scene["hits"], 22_632);
+    let throughput = scene["raybatch"]["throughput"]
+        .as_array()
+        .expect("throughput");
+    let threads: Vec<_> = throughput.iter().map(|t| t["threads"].clone()).collect();
+    assert_eq!(threads, [1, 2]);
+    for figures in throughput {
+        for column in [
+            "closest_mrays",
+            "closest_batch_mrays",
+            "any_mrays",
+            "any_unhinted_mrays",
+            "any_batch_mrays",
+        ] {
+            let rate = figures[column].as_f64().unwrap_or(f64::NAN);
+            assert!(rate.is_finite() && rate > 0.0, "{column}: {figures}");
+        }
+    }
+    let jobs = report["jobs"].as_array().expect("jobs");
+    assert_eq!(jobs.len(), 1, "{report}");
+    assert!(
+        jobs[0]["seconds"].as_f64().is_some_and(|s| s > 0.0),
+        "{report}"
+    );
+}
