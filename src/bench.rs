@@ -77,8 +77,8 @@ pub struct SceneFigures {
     pub load: Option<(f64, f64)>,
     /// Peak resident memory added by loading and building, per triangle (Linux only).
     pub peak_bytes_per_triangle: Option<f64>,
-    /// What the built scene keeps (triangle blocks and nodes), per triangle.
-    pub scene_bytes_per_triangle: f64,
+    /// What the built scene keeps (triangle blocks, spheres and tree nodes), per triangle or sphere.
+    pub scene_bytes_per_primitive: f64,
     pub raybatch: TracerFigures,
     pub embree: Option<TracerFigures>,
 }
@@ -370,7 +370,8 @@ fn trace_scene(
             });
         (figures.next().expect("ours is traced"), figures.next())
     };
-    let scene_bytes_per_triangle = ours.counts().accel_bytes as f64 / triangles.max(1) as f64;
+    let scene_bytes_per_primitive =
+        ours.counts().accel_bytes as f64 / (triangles + spheres).max(1) as f64;
 
     Ok(SceneFigures {
         name: scene.name,
@@ -380,7 +381,7 @@ fn trace_scene(
         hits,
         load: scene.load,
         peak_bytes_per_triangle,
-        scene_bytes_per_triangle,
+        scene_bytes_per_primitive,
         raybatch,
         embree,
     })
@@ -694,7 +695,7 @@ impl BenchReport {
                 "hits": s.hits,
                 "load_s": s.load.map(|l| l.0), "load_mb_per_s": s.load.map(|l| l.1),
                 "peak_bytes_per_triangle": s.peak_bytes_per_triangle,
-                "scene_bytes_per_triangle": s.scene_bytes_per_triangle,
+                "scene_bytes_per_primitive": s.scene_bytes_per_primitive,
                 "raybatch": tracer(&s.raybatch),
                 "embree": s.embree.as_ref().map(tracer),
             })).collect::<Vec<_>>(),
@@ -771,7 +772,7 @@ impl BenchReport {
         let _ = writeln!(out);
         let _ = writeln!(
             out,
-            "| scene | build s | Embree build s | build / Embree | load s | load MB/s | scene bytes/triangle | peak RSS growth bytes/triangle |"
+            "| scene | build s | Embree build s | build / Embree | load s | load MB/s | scene bytes/primitive | peak RSS growth bytes/triangle |"
         );
         let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|");
         for s in &self.scenes {
@@ -789,7 +790,7 @@ impl BenchReport {
                 )),
                 s.load.map_or("-".to_string(), |l| format!("{:.3}", l.0)),
                 s.load.map_or("-".to_string(), |l| format!("{:.0}", l.1)),
-                s.scene_bytes_per_triangle,
+                s.scene_bytes_per_primitive,
                 s.peak_bytes_per_triangle
                     .map_or("-".to_string(), |b| format!("{b:.0}")),
             );
