@@ -473,6 +473,7 @@ fn throughputs(
     let mut times = vec![vec![Query::ALL.map(|_| Vec::new()); threads.len()]; tracers.len()];
     for round in 0..=runs.max(1) {
         for (p, pool) in pools.iter().enumerate() {
+            wake(pool);
             for (q, &query) in Query::ALL.iter().enumerate() {
                 for (t, pass) in tracers.iter().enumerate() {
                     let start = Instant::now();
@@ -506,6 +507,22 @@ fn throughputs(
         })
         .collect()
 }
+
+/// Keeps every thread of `pool` busy for a few milliseconds. A pool left idle while the
+/// other one traced has its threads asleep, and on a virtual machine a sleeping core can
+/// take milliseconds to come back: the first pass timed after the switch, always ours
+/// closest-hit single rays, read up to half as fast as the same pass in other rounds.
+fn wake(pool: &rayon::ThreadPool) {
+    pool.broadcast(|_| {
+        let start = Instant::now();
+        while start.elapsed().as_secs_f64() < WAKE_S {
+            std::hint::spin_loop();
+        }
+    });
+}
+
+/// How long [`wake`] keeps the threads busy, in seconds.
+const WAKE_S: f64 = 0.005;
 
 /// The median duration of `runs` calls, in seconds (after one warm-up call).
 pub fn median(runs: usize, mut f: impl FnMut()) -> f64 {
