@@ -298,13 +298,16 @@ fn trace_scene(
 
     // The first build sets the peak (loading and building); later ones reuse the memory.
     let start = Instant::now();
-    let mut ours = Scene::build(&scene.geometry);
+    let first = Scene::build(&scene.geometry);
     let first_build = start.elapsed().as_secs_f64();
     let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
     });
     let rays = camera_rays(&scene);
-    let hits = count_hits(&ours, &rays, |t, r| t.closest_hit(r).is_some());
+    let hits = count_hits(&first, &rays, |t, r| t.closest_hit(r).is_some());
+    let scene_bytes_per_primitive =
+        first.counts().accel_bytes as f64 / (triangles + spheres).max(1) as f64;
+    drop(first);
     let pools = options
         .threads
         .iter()
@@ -323,18 +326,20 @@ fn trace_scene(
     let (raybatch, embree) = {
         #[cfg(feature = "embree")]
         let mut reference = None;
-        // Builds in turns (ours, then Embree's), so that drift hits both alike.
+        // Builds in turns (ours, then Embree's), so that drift hits both alike, each with
+        // no other scene alive: a build then finds the same free memory whichever it is.
         let mut build_times = [vec![first_build], Vec::new()];
         for round in 0..BUILDS {
             if round > 0 {
-                drop(ours);
+                #[cfg(feature = "embree")]
+                drop(reference.take());
                 let start = Instant::now();
-                ours = Scene::build(&scene.geometry);
+                let built = Scene::build(&scene.geometry);
                 build_times[0].push(start.elapsed().as_secs_f64());
+                drop(built);
             }
             #[cfg(feature = "embree")]
             if options.embree {
-                drop(reference.take());
                 let start = Instant::now();
                 reference = Some(
                     crate::embree::EmbreeScene::build(&scene.geometry)
@@ -343,6 +348,7 @@ fn trace_scene(
                 build_times[1].push(start.elapsed().as_secs_f64());
             }
         }
+        let ours = Scene::build(&scene.geometry);
         let ours_pass = |query| trace_pass(&ours, &rays, query);
         #[cfg(feature = "embree")]
         let reference_pass = reference.as_ref().map(|reference| {
@@ -370,8 +376,6 @@ fn trace_scene(
             });
         (figures.next().expect("ours is traced"), figures.next())
     };
-    let scene_bytes_per_primitive =
-        ours.counts().accel_bytes as f64 / (triangles + spheres).max(1) as f64;
 
     Ok(SceneFigures {
         name: scene.name,
