@@ -7,8 +7,8 @@
 //!
 //! Every figure is the median of several runs. Trace passes run in rounds, every query of
 //! both tracers once per round, so that a slow spell of the machine lands on all columns
-//! alike instead of on one. Timing is never
-//! asserted in tests; the figures go to BENCHMARKS.md with the command that produced them.
+//! alike instead of on one. Timing is never asserted in tests; the figures go to
+//! BENCHMARKS.md with the command that produced them.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -77,7 +77,8 @@ pub struct SceneFigures {
     pub load: Option<(f64, f64)>,
     /// Peak resident memory added by loading and building, per triangle (Linux only).
     pub peak_bytes_per_triangle: Option<f64>,
-    /// What the built scene keeps (triangle blocks, spheres and tree nodes), per triangle or sphere.
+    /// What the built scene keeps (triangle blocks, spheres and tree nodes), per triangle
+    /// or sphere.
     pub scene_bytes_per_primitive: f64,
     pub raybatch: TracerFigures,
     pub embree: Option<TracerFigures>,
@@ -327,7 +328,7 @@ fn trace_scene(
         #[cfg(feature = "embree")]
         let mut reference = None;
         // Our builds, then Embree's, each with no other scene alive. (Taken in turns,
-        // Embree's torus build read 0.36–0.46 s against 0.23–0.28 s after ours; we have not
+        // Embree's torus build read 0.36–0.46 s against 0.23–0.29 s after ours; we have not
         // found why, and this is the order of the earlier tables.)
         let mut build_times = [vec![first_build], Vec::new()];
         for _ in 1..BUILDS {
