@@ -308,16 +308,9 @@ unsafe fn trace<const ANY: bool>(
             let planes = node.planes.as_ptr().cast::<f32>();
             // SAFETY: plane offsets are below 6 × 8 floats of a 64-byte aligned node.
             let load = |offset: usize| unsafe { _mm256_load_ps(planes.add(offset)) };
-            let mut enter = _mm256_set1_ps(packet.tmin);
-            let mut exit = _mm256_set1_ps(packet_tmax);
-            for a in 0..3 {
-                let (o, i, f) = (packet.origin[a], packet.inv[a], packet.inv_far[a]);
-                let lower = corners(load(near[a]), o, i, Bound::Lower);
-                let upper = corners(load(far[a]), o, f, Bound::Upper);
-                enter = _mm256_max_ps(lower, enter);
-                exit = _mm256_min_ps(upper, exit);
-            }
-            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+            // SAFETY: AVX2 is enabled in this function.
+            let (mask, enter) =
+                unsafe { packet.enters(near.map(load), far.map(load), packet_tmax) };
             if mask != 0 {
                 let mut entries = [0f32; WIDTH];
                 // SAFETY: `entries` holds eight floats.
@@ -522,23 +515,42 @@ impl PacketBounds {
     /// Only from a function with AVX2 enabled.
     #[inline(always)]
     unsafe fn misses(&self, bounds: &Bounds<f32>) -> bool {
+        let side = |a: usize, upper: bool| {
+            let value = if (self.octant[a] == 1) == upper {
+                bounds.min[a]
+            } else {
+                bounds.max[a]
+            };
+            // SAFETY: AVX2 is enabled in the caller.
+            unsafe { _mm256_set1_ps(value) }
+        };
+        let (near, far) = (
+            [0, 1, 2].map(|a| side(a, false)),
+            [0, 1, 2].map(|a| side(a, true)),
+        );
+        // SAFETY: as above.
+        unsafe { self.enters(near, far, self.horizon) }.0 == 0
+    }
+
+    /// Which of eight boxes, given by their near and far planes per axis, some ray of the
+    /// packet may enter with `tmin <= t <= tmax` (a lane mask), and the packet's lower
+    /// bound on the entry distance into each.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    unsafe fn enters(&self, near: [__m256; 3], far: [__m256; 3], tmax: f32) -> (u32, __m256) {
         // SAFETY: AVX2 is enabled in the caller.
         unsafe {
             let mut enter = _mm256_set1_ps(self.tmin);
-            let mut exit = _mm256_set1_ps(self.horizon);
+            let mut exit = _mm256_set1_ps(tmax);
             for a in 0..3 {
-                let (near, far) = if self.octant[a] == 1 {
-                    (bounds.max[a], bounds.min[a])
-                } else {
-                    (bounds.min[a], bounds.max[a])
-                };
                 let (o, i, f) = (self.origin[a], self.inv[a], self.inv_far[a]);
-                let lower = corners(_mm256_set1_ps(near), o, i, Bound::Lower);
-                let upper = corners(_mm256_set1_ps(far), o, f, Bound::Upper);
-                enter = _mm256_max_ps(lower, enter);
-                exit = _mm256_min_ps(upper, exit);
+                enter = _mm256_max_ps(corners(near[a], o, i, Bound::Lower), enter);
+                exit = _mm256_min_ps(corners(far[a], o, f, Bound::Upper), exit);
             }
-            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) == 0
+            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+            (mask, enter)
         }
     }
 }
