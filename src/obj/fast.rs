@@ -130,7 +130,7 @@ fn read(text: &str) -> Option<Chunk> {
             Some("v") => {
                 let mut p = [0f32; 3];
                 for c in &mut p {
-                    *c = number(words.next()?)?;
+                    *c = words.number()?;
                 }
                 if words.next().is_some() {
                     return None;
@@ -148,8 +148,11 @@ fn read(text: &str) -> Option<Chunk> {
             }
             Some("f") => {
                 let before = out.corners.len();
-                for corner in words {
-                    out.corner(corner.as_bytes())?;
+                while let Some(word) = words.integer() {
+                    match word {
+                        Ok(position) => out.position(position)?,
+                        Err(corner) => out.corner(corner.as_bytes())?,
+                    }
                 }
                 let arity = out.corners.len() - before;
                 if arity < 3 {
@@ -259,18 +262,66 @@ impl<'a> Iterator for Words<'a> {
             Words::Unicode(words) => return words.next(),
         };
         let bytes = text.as_bytes();
-        while *at < bytes.len() && is_space(bytes[*at]) {
-            *at += 1;
-        }
-        if *at == bytes.len() || bytes[*at] == b'\n' {
-            return None;
-        }
-        let start = *at;
+        let start = word_start(bytes, at)?;
         while *at < bytes.len() && !ends_word(bytes[*at]) {
             *at += 1;
         }
         Some(&text[start..*at])
     }
+}
+
+impl<'a> Words<'a> {
+    /// The next word read as [`number`] reads it; `None` at the line's end or if the word
+    /// is not a number. In ASCII text a plain decimal is read as the word is scanned,
+    /// rather than found first and read after.
+    #[inline]
+    fn number(&mut self) -> Option<f32> {
+        if let Words::Ascii { text, at } = self {
+            let bytes = text.as_bytes();
+            let start = word_start(bytes, at)?;
+            if let Some((value, end)) = whole_word(bytes, start, plain_decimal_prefix) {
+                *at = end;
+                return Some(value);
+            }
+        }
+        number(self.next()?)
+    }
+
+    /// The next word: `Ok` with its value if it is an integer, read as the word is scanned
+    /// (ASCII text only), else `Err` with the word; `None` at the line's end.
+    #[inline]
+    fn integer(&mut self) -> Option<Result<isize, &'a str>> {
+        if let Words::Ascii { text, at } = self {
+            let bytes = text.as_bytes();
+            let start = word_start(bytes, at)?;
+            if let Some((value, end)) = whole_word(bytes, start, integer_prefix) {
+                *at = end;
+                return Some(Ok(value));
+            }
+        }
+        self.next().map(Err)
+    }
+}
+
+/// Moves `at` past spaces to the start of the next word of its line, if there is one.
+#[inline(always)]
+fn word_start(bytes: &[u8], at: &mut usize) -> Option<usize> {
+    while *at < bytes.len() && is_space(bytes[*at]) {
+        *at += 1;
+    }
+    (*at < bytes.len() && bytes[*at] != b'\n').then_some(*at)
+}
+
+/// What `prefix` reads at `start`, and where it stops, if it stops at the end of the word.
+#[inline(always)]
+fn whole_word<T>(
+    bytes: &[u8],
+    start: usize,
+    prefix: impl Fn(&[u8]) -> Option<(T, usize)>,
+) -> Option<(T, usize)> {
+    let (value, length) = prefix(&bytes[start..])?;
+    let end = start + length;
+    (end == bytes.len() || ends_word(bytes[end])).then_some((value, end))
 }
 
 /// A number as `f32::from_str` reads it (`None` where it fails). Plain decimals take a
@@ -296,29 +347,34 @@ const POWERS_OF_TEN: [f64; 23] = [
 /// `f32`s: any other `f32` rounding boundary between `d` and the true value would be an
 /// `f64` nearer to it than `d`. Halfway cases are left to the standard library.
 fn plain_decimal(word: &[u8]) -> Option<f32> {
-    let (negative, digits) = match word {
-        [b'-', rest @ ..] => (true, rest),
-        [b'+', rest @ ..] => (false, rest),
-        _ => (false, word),
+    plain_decimal_prefix(word)
+        .filter(|&(_, length)| length == word.len())
+        .map(|(value, _)| value)
+}
+
+/// [`plain_decimal`] of the longest start of `text` made of a sign, digits and a point, and
+/// that start's length.
+#[inline(always)]
+fn plain_decimal_prefix(text: &[u8]) -> Option<(f32, usize)> {
+    let (negative, sign) = sign(text);
+    let mut m = 0u64;
+    // Appends the digits from `at` to `m`; where they stop.
+    let mut digits = |at: usize| -> Option<usize> {
+        let (value, count) = append_digits(&text[at.min(text.len())..], m, 1 << 53)?;
+        m = value;
+        Some(at + count)
     };
-    let (mut m, mut count, mut after_point) = (0u64, 0, None);
-    for &c in digits {
-        match c {
-            b'0'..=b'9' => {
-                m = m * 10 + u64::from(c - b'0');
-                if m > 1 << 53 {
-                    return None;
-                }
-                count += 1;
-                if let Some(k) = &mut after_point {
-                    *k += 1;
-                }
-            }
-            b'.' if after_point.is_none() => after_point = Some(0),
-            _ => return None,
+    let mut length = digits(sign)?;
+    // Digits in all, and after the point.
+    let (mut count, mut k) = (length - sign, 0);
+    if text.get(length) == Some(&b'.') {
+        let end = digits(length + 1)?;
+        k = end - length - 1;
+        (count, length) = (count + k, end);
+        if text.get(length) == Some(&b'.') {
+            return None;
         }
     }
-    let k = after_point.unwrap_or(0);
     if count == 0 || k >= POWERS_OF_TEN.len() {
         return None;
     }
@@ -330,7 +386,7 @@ fn plain_decimal(word: &[u8]) -> Option<f32> {
         return None;
     }
     let value = d as f32;
-    Some(if negative { -value } else { value })
+    Some((if negative { -value } else { value }, length))
 }
 
 /// Checks that the next `n` words are numbers.
@@ -346,19 +402,12 @@ impl Chunk {
     /// `tobj` skips them), noting how far its indices reach.
     fn corner(&mut self, corner: &[u8]) -> Option<()> {
         let mut parts = corner.split(|&b| b == b'/');
-        let position = self.reference(parts.next()?, 0)?;
-        match position {
-            Ok(index) => self.corners.push(index),
-            Err(relative) => {
-                self.relative.push((self.corners.len(), relative));
-                self.corners.push(0);
-            }
-        }
+        self.position(integer(parts.next()?)?)?;
         for kind in 1..KINDS {
             match parts.next() {
                 Some([]) | None => {}
                 Some(part) => {
-                    let _checked = self.reference(part, kind)?;
+                    let _checked = self.reference(integer(part)?, kind)?;
                 }
             }
         }
@@ -368,10 +417,24 @@ impl Chunk {
         Some(())
     }
 
+    /// Adds a face corner given by its position index alone.
+    #[inline]
+    fn position(&mut self, index: isize) -> Option<()> {
+        match self.reference(index, 0)? {
+            Ok(index) => self.corners.push(index),
+            Err(relative) => {
+                self.relative.push((self.corners.len(), relative));
+                self.corners.push(0);
+            }
+        }
+        Some(())
+    }
+
     /// An index of `kind` counted from 1 (`Ok`, from 0) or back from the last element
     /// read (`Err`, from the chunk's first element), its reach noted.
-    fn reference(&mut self, word: &[u8], kind: usize) -> Option<Result<u32, i64>> {
-        let index = i64::try_from(integer(word)?).ok()?;
+    #[inline]
+    fn reference(&mut self, index: isize, kind: usize) -> Option<Result<u32, i64>> {
+        let index = i64::try_from(index).ok()?;
         let read = self.counts[kind] as i64;
         if index > 0 {
             self.forward[kind] = self.forward[kind].max(index - 1 - read);
@@ -387,28 +450,54 @@ impl Chunk {
 
 /// An integer as `isize::from_str` reads it: an optional sign and at least one digit.
 fn integer(word: &[u8]) -> Option<isize> {
-    let (negative, digits) = match word {
-        [b'-', rest @ ..] => (true, rest),
-        [b'+', rest @ ..] => (false, rest),
-        _ => (false, word),
+    integer_prefix(word)
+        .filter(|&(_, length)| length == word.len())
+        .map(|(value, _)| value)
+}
+
+/// [`integer`] of the longest start of `text` made of a sign and digits, and that start's
+/// length.
+#[inline(always)]
+fn integer_prefix(text: &[u8]) -> Option<(isize, usize)> {
+    let (negative, sign) = sign(text);
+    let (magnitude, count) = append_digits(&text[sign..], 0, u64::MAX)?;
+    let length = sign + count;
+    let value = if negative {
+        isize::try_from(-i128::from(magnitude)).ok()?
+    } else {
+        isize::try_from(magnitude).ok()?
     };
-    if digits.is_empty() {
-        return None;
+    (length > sign).then_some((value, length))
+}
+
+/// Whether `text` starts with a minus sign, and the length of its sign (`-` or `+`) if any.
+#[inline(always)]
+fn sign(text: &[u8]) -> (bool, usize) {
+    match text.first() {
+        Some(b'-') => (true, 1),
+        Some(b'+') => (false, 1),
+        _ => (false, 0),
     }
-    let mut value: isize = 0;
-    for &d in digits {
-        if !d.is_ascii_digit() {
+}
+
+/// `value` followed by the decimal digits at the start of `text` (`value · 10^n + digits`),
+/// and their count `n`; `None` if that would pass `limit`.
+#[inline(always)]
+fn append_digits(text: &[u8], mut value: u64, limit: u64) -> Option<(u64, usize)> {
+    let mut count = 0;
+    while let Some(&c @ b'0'..=b'9') = text.get(count) {
+        // Below 2^64 / 10 (checked once, at the 19th digit) there is no overflow.
+        value = if value < u64::MAX / 10 {
+            value * 10 + u64::from(c - b'0')
+        } else {
+            value.checked_mul(10)?.checked_add(u64::from(c - b'0'))?
+        };
+        if value > limit {
             return None;
         }
-        let d = isize::from(d - b'0');
-        value = value.checked_mul(10)?;
-        value = if negative {
-            value.checked_sub(d)?
-        } else {
-            value.checked_add(d)?
-        };
+        count += 1;
     }
-    Some(value)
+    Some((value, count))
 }
 
 /// One geometry: objects in file order, each object's vertices numbered in order of first
@@ -508,6 +597,53 @@ mod tests {
                 word.parse::<isize>().ok(),
                 "{word:?}"
             );
+        }
+    }
+
+    #[test]
+    fn words_read_in_one_pass_are_the_words_found_and_then_read() {
+        // Words that start as a number or an integer and may go on as something else,
+        // each followed by every way a word can end (or not end: `/`).
+        let words = [
+            "0",
+            "-0",
+            "+7",
+            "12",
+            "1.5",
+            "-.5",
+            "1.",
+            ".",
+            "-",
+            "+",
+            "1.5e3",
+            "1e3",
+            "12a",
+            "1..2",
+            "1.2.3",
+            "0x10",
+            "7/8",
+            "7//9",
+            "9223372036854775807",
+            "9223372036854775808",
+            "00000000000000000000001",
+            "123456789012345678901",
+            "9007199254740993",
+            "16777217",
+        ];
+        let endings = ["", " ", "\t", "\r\n", "\n", "\x0bx", "/2", " 5"];
+        for word in words {
+            for ending in endings {
+                let text = format!("{word}{ending}");
+                let found = || Words::Ascii { text: &text, at: 0 };
+                let first = found().next();
+                let mut words = found();
+                assert_eq!(words.number(), first.and_then(number), "{text:?}");
+                assert_eq!(words.next(), found().nth(1), "after a number: {text:?}");
+                let mut words = found();
+                let expected = first.map(|w| integer(w.as_bytes()).ok_or(w));
+                assert_eq!(words.integer(), expected, "{text:?}");
+                assert_eq!(words.next(), found().nth(1), "after an integer: {text:?}");
+            }
         }
     }
 
