@@ -323,6 +323,10 @@ pub(crate) unsafe fn block_test(
             _mm_or_ps(_mm_cmpgt_ps(v, zero), _mm_cmpgt_ps(w, zero)),
         );
         let det = _mm_add_ps(_mm_add_ps(u, v), w);
+        let inside = _mm_andnot_ps(_mm_and_ps(negative, positive), _mm_cmpneq_ps(det, zero));
+        if _mm_movemask_ps(inside) == 0 {
+            return (0, BlockHits { t: zero, u, v, w, det });
+        }
         let t_scaled = _mm_add_ps(
             _mm_add_ps(
                 _mm_mul_ps(u, _mm_mul_ps(r.sz, az)),
@@ -331,7 +335,6 @@ pub(crate) unsafe fn block_test(
             _mm_mul_ps(w, _mm_mul_ps(r.sz, cz)),
         );
         let t = _mm_div_ps(t_scaled, det);
-        let inside = _mm_andnot_ps(_mm_and_ps(negative, positive), _mm_cmpneq_ps(det, zero));
         let in_range = _mm_and_ps(_mm_cmpgt_ps(t, r.tmin4), _mm_cmplt_ps(t, tmax));
         let mask = _mm_movemask_ps(_mm_and_ps(inside, in_range)) as u32;
         (mask, BlockHits { t, u, v, w, det })
