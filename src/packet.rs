@@ -5,10 +5,12 @@
 //! reciprocal direction, so their extremes over the packet lie at the corners of the
 //! ranges of both, and since rounding is monotonic the corners computed in float32 bound
 //! every ray's own computed value. A node is therefore skipped only if every ray's own
-//! robust test would skip it. Leaves are tested ray by ray with exactly the single-ray box
-//! and triangle tests, eight rays per instruction for the box. A packet needs all its rays
-//! to share the signs of their direction (one near plane per axis); callers trace other
-//! rays one by one.
+//! robust test would skip it. Leaves are tested with exactly the single-ray box and
+//! triangle arithmetic: the box against a row of eight rays per instruction, then the
+//! triangles either ray by ray (four per instruction, as a single ray tests them) or, where
+//! most of a row entered the box, each triangle against the row's eight rays at once. A
+//! packet needs all its rays to share the signs of their direction (one near plane per
+//! axis); callers trace other rays one by one.
 
 use std::arch::x86_64::*;
 use std::cell::Cell;
@@ -17,15 +19,27 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, block_test, distance, lanes4, pack, prefetch_child, push_sorted, ray_constants,
-    slab_test, tri_lanes,
+    STACK, TriLanes, block_test, distance, lanes4, lanes8, pack, prefetch_child, push_sorted,
+    ray_constants, row_test, slab_test, tri_lanes,
 };
-use crate::triangle::{Nearest, ShearedRay, TriangleBlock, TriangleHit};
+use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
 pub const PACKET: usize = 64;
 /// Rows of eight rays.
 const ROWS: usize = PACKET / 8;
+
+/// Rays of a row entering a leaf from which the row test (each triangle against all eight
+/// rays) replaces the rays' own block tests (four triangles against one ray).
+const ROW_TEST_FROM: u32 = 5;
+
+/// The bound below which a triangle distance may still matter to a ray whose nearest hit
+/// so far is `nearest`: strict for any-hit (`t < tmax`), ties admitted for closest (which
+/// [`Nearest::improves`] decides).
+#[inline(always)]
+fn t_triangle<const ANY: bool>(nearest: Nearest) -> f32 {
+    if ANY { nearest.t } else { nearest.t.next_up() }
+}
 
 /// Stack entries for a leaf carry its parent node and slot (for the leaf's box).
 const SLOT_BITS: u32 = 3;
@@ -247,13 +261,25 @@ unsafe fn trace<const ANY: bool>(
     let mut inv_far = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
     let mut tmin = Rows::ZERO;
     let mut t_box = Rows::ZERO;
+    // For the row test: each ray's shear, and the bound its triangle distances must stay
+    // below (`t_triangle`).
+    let mut shear_rows = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
+    let mut t_tri = Rows::ZERO;
+    let mut axes = [[0usize; 3]; PACKET];
     let mut sheared = [MaybeUninit::<ShearedRay>::uninit(); PACKET];
     let mut nearest = [Nearest::before(f32::NEG_INFINITY); PACKET];
     // The largest horizon over the rays still searching.
     let mut packet_tmax = packet.horizon;
     // Each ray's division results in registers (one 8-lane division, as for a single
     // ray), written out lane by lane: rereading values stored field by field would stall.
-    let mut values = ([0f32; 4], [0f32; 4], [0f32; 4], 0f32);
+    let mut values = (
+        [0f32; 4],
+        [0f32; 4],
+        [0f32; 4],
+        0f32,
+        [0f32; 4],
+        [0usize; 3],
+    );
     for k in 0..PACKET {
         let (r, l) = (k / 8, k % 8);
         if k < n {
@@ -267,6 +293,8 @@ unsafe fn trace<const ANY: bool>(
                 lanes4(c.inv),
                 lanes4(c.inv_far),
                 ray.tmin,
+                shear,
+                c.k,
             );
             nearest[k] = Nearest::before(ray.tmax);
             let [kx, ky, kz] = c.k;
@@ -285,10 +313,17 @@ unsafe fn trace<const ANY: bool>(
             origin[a].0[r][l] = values.0[a];
             inv[a].0[r][l] = values.1[a];
             inv_far[a].0[r][l] = values.2[a];
+            shear_rows[a].0[r][l] = values.4[a];
         }
         tmin.0[r][l] = values.3;
         t_box.0[r][l] = nearest[k].horizon();
+        t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
+        axes[k] = values.5;
     }
+    // The rows whose rays share their axes `k` (as camera rays nearly always do), which
+    // the row test needs.
+    let shared_axes: [bool; ROWS] =
+        std::array::from_fn(|r| axes[r * 8..r * 8 + 8].iter().all(|&k| k == axes[r * 8]));
     let nodes = bvh.nodes();
     if nodes.is_empty() {
         return Some(visits);
@@ -363,6 +398,58 @@ unsafe fn trace<const ANY: bool>(
                 };
                 let mut hits = _mm256_movemask_ps(entered) as u32;
                 visits.entries += hits.count_ones();
+                if hits.count_ones() >= ROW_TEST_FROM && shared_axes[r] {
+                    // Each triangle against the row's rays at once.
+                    let [kx, ky, kz] = axes[r * 8];
+                    let row = TriLanes {
+                        kx,
+                        ky,
+                        kz,
+                        origin: origin.each_ref().map(lane),
+                        sx: lane(&shear_rows[0]),
+                        sy: lane(&shear_rows[1]),
+                        sz: lane(&shear_rows[2]),
+                        tmin: lane(&tmin),
+                    };
+                    for b in first..first + count {
+                        let block = &blocks[b as usize];
+                        for l in 0..BLOCK {
+                            // The last block repeats its last triangle in unused lanes.
+                            if l > 0 && block.ids[l] == block.ids[l - 1] {
+                                break;
+                            }
+                            // SAFETY: AVX2 is enabled in this function.
+                            let (mask, row_hits) =
+                                unsafe { row_test(block, l, &row, lane(&t_tri)) };
+                            let mut m = mask & hits;
+                            while m != 0 {
+                                let i = m.trailing_zeros() as usize;
+                                m &= m - 1;
+                                let k = r * 8 + i;
+                                if ANY {
+                                    any[k] = true;
+                                    nearest[k].t = f32::NEG_INFINITY;
+                                    hits &= !(1 << i);
+                                    live -= 1;
+                                } else {
+                                    let slot = b * BLOCK as u32 + l as u32;
+                                    // SAFETY: AVX2 is enabled in this function.
+                                    let t = unsafe { lanes8(row_hits.t) }[i];
+                                    if !nearest[k].improves(t, slot) {
+                                        continue;
+                                    }
+                                    nearest[k] = Nearest { t, slot };
+                                    // SAFETY: as above.
+                                    found[k] = Some(unsafe { row_hits.hit(i) });
+                                }
+                                t_box.0[r][i] = nearest[k].horizon();
+                                t_tri.0[r][i] = t_triangle::<ANY>(nearest[k]);
+                                improved = true;
+                            }
+                        }
+                    }
+                    continue;
+                }
                 while hits != 0 {
                     let k = r * 8 + hits.trailing_zeros() as usize;
                     hits &= hits - 1;
@@ -370,14 +457,9 @@ unsafe fn trace<const ANY: bool>(
                     // written above; AVX2 is enabled in this function.
                     let tri = unsafe { tri_lanes(sheared[k].assume_init_ref(), tmin.0[r][k % 8]) };
                     for b in first..first + count {
-                        // Strict for any-hit (`t < tmax`), ties admitted for closest.
-                        let t_tri = _mm_set1_ps(if ANY {
-                            nearest[k].t
-                        } else {
-                            nearest[k].t.next_up()
-                        });
+                        let limit = _mm_set1_ps(t_triangle::<ANY>(nearest[k]));
                         // SAFETY: AVX2 is enabled in this function.
-                        let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &tri, t_tri) };
+                        let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &tri, limit) };
                         if mask == 0 {
                             continue;
                         }
@@ -385,12 +467,14 @@ unsafe fn trace<const ANY: bool>(
                             any[k] = true;
                             nearest[k].t = f32::NEG_INFINITY;
                             t_box.0[r][k % 8] = f32::NEG_INFINITY;
+                            t_tri.0[r][k % 8] = f32::NEG_INFINITY;
                             live -= 1;
                             improved = true;
                             break;
                         }
                         if lanes.keep_nearest(mask, b, &mut nearest[k], &mut found[k]) {
                             t_box.0[r][k % 8] = nearest[k].horizon();
+                            t_tri.0[r][k % 8] = t_triangle::<ANY>(nearest[k]);
                             improved = true;
                         }
                     }

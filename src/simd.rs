@@ -34,37 +34,39 @@ struct Lanes {
     near: [usize; 3],
     far: [usize; 3],
     tmin8: __m256,
-    tri: TriLanes,
+    tri: TriLanes<__m128>,
 }
 
-/// A ray's constants for the watertight test, four lanes at a time.
+/// Rays' constants for the watertight test: one ray in every lane (`__m128`, a ray against
+/// a block's four triangles), or a ray per lane (`__m256`, a row of a packet against one
+/// triangle; all its rays then share the axes `k`).
 #[derive(Clone, Copy)]
-pub(crate) struct TriLanes {
-    kx: usize,
-    ky: usize,
-    kz: usize,
-    o4: [__m128; 3],
-    sx: __m128,
-    sy: __m128,
-    sz: __m128,
-    tmin4: __m128,
+pub(crate) struct TriLanes<V> {
+    pub(crate) kx: usize,
+    pub(crate) ky: usize,
+    pub(crate) kz: usize,
+    pub(crate) origin: [V; 3],
+    pub(crate) sx: V,
+    pub(crate) sy: V,
+    pub(crate) sz: V,
+    pub(crate) tmin: V,
 }
 
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes {
+pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes<__m128> {
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
         TriLanes {
             kx: sheared.kx,
             ky: sheared.ky,
             kz: sheared.kz,
-            o4: sheared.origin.map(|o| _mm_set1_ps(o)),
+            origin: sheared.origin.map(|o| _mm_set1_ps(o)),
             sx: _mm_set1_ps(sheared.sx),
             sy: _mm_set1_ps(sheared.sy),
             sz: _mm_set1_ps(sheared.sz),
-            tmin4: _mm_set1_ps(tmin),
+            tmin: _mm_set1_ps(tmin),
         }
     }
 }
@@ -218,11 +220,11 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
                 kx,
                 ky,
                 kz,
-                o4: [_mm_set1_ps(ox), _mm_set1_ps(oy), _mm_set1_ps(oz)],
+                origin: [_mm_set1_ps(ox), _mm_set1_ps(oy), _mm_set1_ps(oz)],
                 sx: splat4!(shear, 0),
                 sy: splat4!(shear, 1),
                 sz: splat4!(shear, 2),
-                tmin4: _mm_set1_ps(ray.tmin),
+                tmin: _mm_set1_ps(ray.tmin),
             },
         }
     }
@@ -273,7 +275,74 @@ unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) 
     }
 }
 
-/// The watertight test of a block's four triangles: a bit per lane with
+/// The watertight test's arithmetic ([`crate::triangle::intersect`]), lane by lane, for
+/// four triangles against one ray (`_mm_`) or one triangle against eight rays (`_mm256_`):
+/// `(mask, Hits)` with a bit per lane where `tmin < t < tmax`. The same IEEE operations in
+/// the same order in every lane, so every variant is bit-identical to the scalar test. A
+/// macro, so that it inlines into the AVX2 functions; `$vertex(v, axis)` gives the lanes
+/// of coordinate `axis` of vertex `v`.
+macro_rules! watertight_test {
+    ($r:expr, $vertex:expr, $tmax:expr, $exact_edges:expr,
+     $zero:ident, $sub:ident, $mul:ident, $add:ident, $div:ident, $and:ident, $or:ident,
+     $andnot:ident, $cmp:ident, $movemask:ident) => {{
+        let r = $r;
+        let vertex = $vertex;
+        let relative = |v: usize, axis: usize| $sub(vertex(v, axis), r.origin[axis]);
+        let (kx, ky, kz) = (r.kx, r.ky, r.kz);
+        let (az, bz, cz) = (relative(0, kz), relative(1, kz), relative(2, kz));
+        let shear = |v: usize, axis: usize, s, z| $sub(relative(v, axis), $mul(s, z));
+        let (ax, ay) = (shear(0, kx, r.sx, az), shear(0, ky, r.sy, az));
+        let (bx, by) = (shear(1, kx, r.sx, bz), shear(1, ky, r.sy, bz));
+        let (cx, cy) = (shear(2, kx, r.sx, cz), shear(2, ky, r.sy, cz));
+        let mut u = $sub($mul(cx, by), $mul(cy, bx));
+        let mut v = $sub($mul(ax, cy), $mul(ay, cx));
+        let mut w = $sub($mul(bx, ay), $mul(by, ax));
+
+        let zero = $zero();
+        let on_edge = $or(
+            $cmp::<_CMP_EQ_OQ>(u, zero),
+            $or($cmp::<_CMP_EQ_OQ>(v, zero), $cmp::<_CMP_EQ_OQ>(w, zero)),
+        );
+        if $movemask(on_edge) != 0 {
+            (u, v, w) = $exact_edges(on_edge, [ax, ay, bx, by, cx, cy], (u, v, w));
+        }
+
+        let negative = $or(
+            $cmp::<_CMP_LT_OS>(u, zero),
+            $or($cmp::<_CMP_LT_OS>(v, zero), $cmp::<_CMP_LT_OS>(w, zero)),
+        );
+        let positive = $or(
+            $cmp::<_CMP_GT_OS>(u, zero),
+            $or($cmp::<_CMP_GT_OS>(v, zero), $cmp::<_CMP_GT_OS>(w, zero)),
+        );
+        let det = $add($add(u, v), w);
+        let inside = $andnot($and(negative, positive), $cmp::<_CMP_NEQ_UQ>(det, zero));
+        // Most lanes miss: their division is skipped.
+        if $movemask(inside) == 0 {
+            (
+                0,
+                Hits {
+                    t: zero,
+                    u,
+                    v,
+                    w,
+                    det,
+                },
+            )
+        } else {
+            let t_scaled = $add(
+                $add($mul(u, $mul(r.sz, az)), $mul(v, $mul(r.sz, bz))),
+                $mul(w, $mul(r.sz, cz)),
+            );
+            let t = $div(t_scaled, det);
+            let in_range = $and($cmp::<_CMP_GT_OS>(t, r.tmin), $cmp::<_CMP_LT_OS>(t, $tmax));
+            let mask = $movemask($and(inside, in_range)) as u32;
+            (mask, Hits { t, u, v, w, det })
+        }
+    }};
+}
+
+/// The watertight test of a block's four triangles against one ray: a bit per lane with
 /// `tmin < t < tmax`, and the lanes' distance, edge functions and determinant (meaningless
 /// where the bit is clear).
 ///
@@ -282,75 +351,52 @@ unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) 
 #[inline(always)]
 pub(crate) unsafe fn block_test(
     block: &TriangleBlock,
-    r: &TriLanes,
+    r: &TriLanes<__m128>,
     tmax: __m128,
-) -> (u32, BlockHits) {
+) -> (u32, Hits<__m128>) {
     // SAFETY: blocks are 16-byte aligned and each lane array is 16 bytes at a multiple
-    // of 16; AVX2 (and so SSE) is enabled in the caller.
+    // of 16; AVX2 (and so SSE and AVX) is enabled in the caller.
     unsafe {
-        let load = |vertex: usize, axis: usize| _mm_load_ps(block.v[vertex][axis].as_ptr());
-        let relative = |vertex: usize, axis: usize| _mm_sub_ps(load(vertex, axis), r.o4[axis]);
-        let (kx, ky, kz) = (r.kx, r.ky, r.kz);
-        let (az, bz, cz) = (relative(0, kz), relative(1, kz), relative(2, kz));
-        let shear = |v: usize, axis: usize, s: __m128, z: __m128| {
-            _mm_sub_ps(relative(v, axis), _mm_mul_ps(s, z))
-        };
-        let (ax, ay) = (shear(0, kx, r.sx, az), shear(0, ky, r.sy, az));
-        let (bx, by) = (shear(1, kx, r.sx, bz), shear(1, ky, r.sy, bz));
-        let (cx, cy) = (shear(2, kx, r.sx, cz), shear(2, ky, r.sy, cz));
-        let mut u = _mm_sub_ps(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx));
-        let mut v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
-        let mut w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
-
-        let zero = _mm_setzero_ps();
-        let any_zero = |a, b, c| {
-            _mm_or_ps(
-                _mm_cmpeq_ps(a, zero),
-                _mm_or_ps(_mm_cmpeq_ps(b, zero), _mm_cmpeq_ps(c, zero)),
-            )
-        };
-        let on_edge = any_zero(u, v, w);
-        if _mm_movemask_ps(on_edge) != 0 {
-            (u, v, w) = exact_edges(on_edge, [ax, ay, bx, by, cx, cy], (u, v, w));
-        }
-
-        let negative = _mm_or_ps(
-            _mm_cmplt_ps(u, zero),
-            _mm_or_ps(_mm_cmplt_ps(v, zero), _mm_cmplt_ps(w, zero)),
-        );
-        let positive = _mm_or_ps(
-            _mm_cmpgt_ps(u, zero),
-            _mm_or_ps(_mm_cmpgt_ps(v, zero), _mm_cmpgt_ps(w, zero)),
-        );
-        let det = _mm_add_ps(_mm_add_ps(u, v), w);
-        let inside = _mm_andnot_ps(_mm_and_ps(negative, positive), _mm_cmpneq_ps(det, zero));
-        if _mm_movemask_ps(inside) == 0 {
-            return (0, BlockHits { t: zero, u, v, w, det });
-        }
-        let t_scaled = _mm_add_ps(
-            _mm_add_ps(
-                _mm_mul_ps(u, _mm_mul_ps(r.sz, az)),
-                _mm_mul_ps(v, _mm_mul_ps(r.sz, bz)),
-            ),
-            _mm_mul_ps(w, _mm_mul_ps(r.sz, cz)),
-        );
-        let t = _mm_div_ps(t_scaled, det);
-        let in_range = _mm_and_ps(_mm_cmpgt_ps(t, r.tmin4), _mm_cmplt_ps(t, tmax));
-        let mask = _mm_movemask_ps(_mm_and_ps(inside, in_range)) as u32;
-        (mask, BlockHits { t, u, v, w, det })
+        let vertex = |v: usize, axis: usize| _mm_load_ps(block.v[v][axis].as_ptr());
+        watertight_test! { r, vertex, tmax, exact_edges,
+        _mm_setzero_ps, _mm_sub_ps, _mm_mul_ps, _mm_add_ps, _mm_div_ps, _mm_and_ps, _mm_or_ps,
+        _mm_andnot_ps, _mm_cmp_ps, _mm_movemask_ps }
     }
 }
 
-/// A block test's per-lane values.
-pub(crate) struct BlockHits {
-    pub(crate) t: __m128,
-    u: __m128,
-    v: __m128,
-    w: __m128,
-    det: __m128,
+/// The watertight test of triangle `lane` of `block` against a row of eight rays (which
+/// share the axes `k`): a bit per ray with `tmin < t < tmax`, and the rays' values, as
+/// [`block_test`] gives them.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+pub(crate) unsafe fn row_test(
+    block: &TriangleBlock,
+    lane: usize,
+    r: &TriLanes<__m256>,
+    tmax: __m256,
+) -> (u32, Hits<__m256>) {
+    // SAFETY: `lane` is below `BLOCK`; AVX2 is enabled in the caller.
+    unsafe {
+        let vertex = |v: usize, axis: usize| _mm256_broadcast_ss(&block.v[v][axis][lane]);
+        watertight_test! { r, vertex, tmax, exact_edges8,
+        _mm256_setzero_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps, _mm256_div_ps,
+        _mm256_and_ps, _mm256_or_ps, _mm256_andnot_ps, _mm256_cmp_ps, _mm256_movemask_ps }
+    }
 }
 
-impl BlockHits {
+/// A watertight test's per-lane values: `__m128` for a block's four triangles, `__m256` for
+/// a row's eight rays.
+pub(crate) struct Hits<V> {
+    pub(crate) t: V,
+    u: V,
+    v: V,
+    w: V,
+    det: V,
+}
+
+impl Hits<__m128> {
     /// Folds the hits of block `block` (lanes set in `mask`) into `nearest` and `found`
     /// under the tie rule of [`Nearest`]; whether any lane improved on it.
     #[inline(always)]
@@ -381,14 +427,55 @@ impl BlockHits {
     #[inline(always)]
     pub(crate) fn hit(&self, lane: usize) -> TriangleHit {
         let get = |x: __m128| lanes4(x)[lane];
-        let (u, v, w, det) = (get(self.u), get(self.v), get(self.w), get(self.det));
-        TriangleHit {
-            t: get(self.t),
-            b0: u / det,
-            b1: v / det,
-            b2: w / det,
-        }
+        hit_of(
+            get(self.t),
+            get(self.u),
+            get(self.v),
+            get(self.w),
+            get(self.det),
+        )
     }
+}
+
+impl Hits<__m256> {
+    /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    pub(crate) unsafe fn hit(&self, lane: usize) -> TriangleHit {
+        // SAFETY: AVX2 is enabled in the caller.
+        let get = |x: __m256| unsafe { lanes8(x) }[lane];
+        hit_of(
+            get(self.t),
+            get(self.u),
+            get(self.v),
+            get(self.w),
+            get(self.det),
+        )
+    }
+}
+
+#[inline(always)]
+fn hit_of(t: f32, u: f32, v: f32, w: f32, det: f32) -> TriangleHit {
+    TriangleHit {
+        t,
+        b0: u / det,
+        b1: v / det,
+        b2: w / det,
+    }
+}
+
+/// The eight lanes of `x`.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+pub(crate) unsafe fn lanes8(x: __m256) -> [f32; 8] {
+    let mut out = [0f32; 8];
+    // SAFETY: `out` holds eight floats; AVX2 is enabled in the caller.
+    unsafe { _mm256_storeu_ps(out.as_mut_ptr(), x) };
+    out
 }
 
 /// The float64 recomputation of the edge functions, for the lanes where one is exactly 0.
@@ -399,15 +486,7 @@ fn exact_edges(
     sheared: [__m128; 6],
     (u, v, w): (__m128, __m128, __m128),
 ) -> (__m128, __m128, __m128) {
-    let mask = lanes4(on_edge);
-    let [ax, ay, bx, by, cx, cy] = sheared.map(lanes4);
-    let (mut u, mut v, mut w) = (lanes4(u), lanes4(v), lanes4(w));
-    for lane in 0..BLOCK {
-        if mask[lane].to_bits() != 0 {
-            (u[lane], v[lane], w[lane]) =
-                edge_functions_f64(ax[lane], ay[lane], bx[lane], by[lane], cx[lane], cy[lane]);
-        }
-    }
+    let (u, v, w) = exact_edge_lanes(lanes4(on_edge), sheared.map(lanes4), [u, v, w].map(lanes4));
     // SAFETY: each array holds four floats.
     unsafe {
         (
@@ -416,6 +495,47 @@ fn exact_edges(
             _mm_loadu_ps(w.as_ptr()),
         )
     }
+}
+
+/// [`exact_edges`] for eight lanes.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cold]
+#[inline(never)]
+#[target_feature(enable = "avx2")]
+unsafe fn exact_edges8(
+    on_edge: __m256,
+    sheared: [__m256; 6],
+    (u, v, w): (__m256, __m256, __m256),
+) -> (__m256, __m256, __m256) {
+    // SAFETY: AVX2 is enabled in this function.
+    let lanes = |x| unsafe { lanes8(x) };
+    let (u, v, w) = exact_edge_lanes(lanes(on_edge), sheared.map(lanes), [u, v, w].map(lanes));
+    // SAFETY: each array holds eight floats.
+    unsafe {
+        (
+            _mm256_loadu_ps(u.as_ptr()),
+            _mm256_loadu_ps(v.as_ptr()),
+            _mm256_loadu_ps(w.as_ptr()),
+        )
+    }
+}
+
+/// The edge functions `[u, v, w]`, recomputed in float64 in the lanes set in `mask`.
+#[inline(always)]
+fn exact_edge_lanes<const N: usize>(
+    mask: [f32; N],
+    [ax, ay, bx, by, cx, cy]: [[f32; N]; 6],
+    [mut u, mut v, mut w]: [[f32; N]; 3],
+) -> ([f32; N], [f32; N], [f32; N]) {
+    for lane in 0..N {
+        if mask[lane].to_bits() != 0 {
+            (u[lane], v[lane], w[lane]) =
+                edge_functions_f64(ax[lane], ay[lane], bx[lane], by[lane], cx[lane], cy[lane]);
+        }
+    }
+    (u, v, w)
 }
 
 /// A stack entry: `(entry distance, child)` in a `u64`, distance in the high half.
