@@ -423,46 +423,37 @@ impl Hits<__m128> {
         improved
     }
 
-    /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
+    /// Lane `lane` as a [`TriangleHit`].
     #[inline(always)]
     pub(crate) fn hit(&self, lane: usize) -> TriangleHit {
-        let get = |x: __m128| lanes4(x)[lane];
-        hit_of(
-            get(self.t),
-            get(self.u),
-            get(self.v),
-            get(self.w),
-            get(self.det),
-        )
+        self.hit_in(|x| lanes4(x)[lane])
     }
 }
 
 impl Hits<__m256> {
-    /// Lane `lane` as a [`TriangleHit`], barycentrics divided as the scalar test divides.
+    /// Lane `lane` as a [`TriangleHit`].
     ///
     /// # Safety
     /// Only from a function with AVX2 enabled.
     #[inline(always)]
     pub(crate) unsafe fn hit(&self, lane: usize) -> TriangleHit {
         // SAFETY: AVX2 is enabled in the caller.
-        let get = |x: __m256| unsafe { lanes8(x) }[lane];
-        hit_of(
-            get(self.t),
-            get(self.u),
-            get(self.v),
-            get(self.w),
-            get(self.det),
-        )
+        self.hit_in(|x| unsafe { lanes8(x) }[lane])
     }
 }
 
-#[inline(always)]
-fn hit_of(t: f32, u: f32, v: f32, w: f32, det: f32) -> TriangleHit {
-    TriangleHit {
-        t,
-        b0: u / det,
-        b1: v / det,
-        b2: w / det,
+impl<V: Copy> Hits<V> {
+    /// The [`TriangleHit`] of the lane `get` reads, barycentrics divided as the scalar test
+    /// divides.
+    #[inline(always)]
+    fn hit_in(&self, get: impl Fn(V) -> f32) -> TriangleHit {
+        let det = get(self.det);
+        TriangleHit {
+            t: get(self.t),
+            b0: get(self.u) / det,
+            b1: get(self.v) / det,
+            b2: get(self.w) / det,
+        }
     }
 }
 

@@ -312,6 +312,14 @@ fn word_start(bytes: &[u8], at: &mut usize) -> Option<usize> {
     (*at < bytes.len() && bytes[*at] != b'\n').then_some(*at)
 }
 
+/// What `prefix` reads of `word`, if it reads all of it.
+#[inline(always)]
+fn whole<T>(word: &[u8], prefix: impl Fn(&[u8]) -> Option<(T, usize)>) -> Option<T> {
+    prefix(word)
+        .filter(|&(_, length)| length == word.len())
+        .map(|(value, _)| value)
+}
+
 /// What `prefix` reads at `start`, and where it stops, if it stops at the end of the word.
 #[inline(always)]
 fn whole_word<T>(
@@ -347,9 +355,7 @@ const POWERS_OF_TEN: [f64; 23] = [
 /// `f32`s: any other `f32` rounding boundary between `d` and the true value would be an
 /// `f64` nearer to it than `d`. Halfway cases are left to the standard library.
 fn plain_decimal(word: &[u8]) -> Option<f32> {
-    plain_decimal_prefix(word)
-        .filter(|&(_, length)| length == word.len())
-        .map(|(value, _)| value)
+    whole(word, plain_decimal_prefix)
 }
 
 /// [`plain_decimal`] of the longest start of `text` made of a sign, digits and a point, and
@@ -450,9 +456,7 @@ impl Chunk {
 
 /// An integer as `isize::from_str` reads it: an optional sign and at least one digit.
 fn integer(word: &[u8]) -> Option<isize> {
-    integer_prefix(word)
-        .filter(|&(_, length)| length == word.len())
-        .map(|(value, _)| value)
+    whole(word, integer_prefix)
 }
 
 /// [`integer`] of the longest start of `text` made of a sign and digits, and that start's
