@@ -194,11 +194,17 @@ fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Ge
     if positions.dimensions() != Dimensions::Vec3 {
         return Err((at(&positions), "POSITION must be a VEC3".to_string()));
     }
-    let values = read_accessor(&positions, buffers).map_err(|m| (at(&positions), m))?;
-    let positions_f32: Vec<[f32; 3]> = values
-        .chunks_exact(3)
-        .map(|c| [c[0] as f32, c[1] as f32, c[2] as f32])
-        .collect();
+    let plain = plain_elements(&positions, buffers, DataType::F32, |b| {
+        f32::from_le_bytes([b[0], b[1], b[2], b[3]])
+    });
+    let positions_f32: Vec<[f32; 3]> = match plain {
+        Some(read) => read.map_err(|m| (at(&positions), m))?,
+        None => read_accessor(&positions, buffers)
+            .map_err(|m| (at(&positions), m))?
+            .chunks_exact(3)
+            .map(|c| [c[0] as f32, c[1] as f32, c[2] as f32])
+            .collect(),
+    };
 
     let corners: Vec<u32> = match primitive.indices() {
         Some(indices) => {
@@ -213,15 +219,35 @@ fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Ge
                     "indices must be unsigned integer scalars".to_string(),
                 ));
             }
-            let values = read_accessor(&indices, buffers).map_err(|m| (at(&indices), m))?;
+            let plain = plain_elements(&indices, buffers, DataType::U32, |b| {
+                u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+            })
+            .or_else(|| {
+                plain_elements(&indices, buffers, DataType::U16, |b| {
+                    u32::from(u16::from_le_bytes([b[0], b[1]]))
+                })
+            })
+            .or_else(|| plain_elements(&indices, buffers, DataType::U8, |b| u32::from(b[0])));
+            let corners: Vec<u32> = match plain {
+                Some(read) => {
+                    let read = read.map_err(|m| (at(&indices), m))?;
+                    read.into_iter().map(|[i]| i).collect()
+                }
+                None => read_accessor(&indices, buffers)
+                    .map_err(|m| (at(&indices), m))?
+                    .into_iter()
+                    // Exact: unsigned integers of at most 32 bits.
+                    .map(|i| i as u32)
+                    .collect(),
+            };
             let n = positions_f32.len();
-            if let Some(bad) = values.iter().position(|&i| i as usize >= n) {
+            if let Some(bad) = corners.iter().position(|&i| i as usize >= n) {
                 return Err((
                     at(&indices),
-                    format!("index {bad} is {}, past the {n} vertices", values[bad]),
+                    format!("index {bad} is {}, past the {n} vertices", corners[bad]),
                 ));
             }
-            values.into_iter().map(|i| i as u32).collect()
+            corners
         }
         None => (0..positions_f32.len() as u32).collect(),
     };
@@ -246,6 +272,35 @@ fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Ge
         positions: positions_f32,
         triangles,
     })
+}
+
+/// The elements of an accessor stored as plain values of `data_type` with no sparse
+/// substitutions (nearly every file's positions and indices), read straight from the
+/// buffer, `N` components each, `read` decoding one component from its bytes. `None` when
+/// the accessor needs [`read_accessor`]'s general path, which gives the same values.
+fn plain_elements<T, const N: usize>(
+    accessor: &gltf::Accessor,
+    buffers: &[Vec<u8>],
+    data_type: DataType,
+    read: impl Fn(&[u8]) -> T,
+) -> Option<Result<Vec<[T; N]>, String>> {
+    if accessor.data_type() != data_type
+        || accessor.normalized()
+        || accessor.sparse().is_some()
+        || accessor.dimensions().multiplicity() != N
+    {
+        return None;
+    }
+    let view = accessor.view()?;
+    let (size, count) = (data_type.size(), accessor.count());
+    let element = N * size;
+    let stride = view.stride().unwrap_or(element);
+    let bytes = match view_bytes(&view, accessor.offset(), count, element, stride, buffers) {
+        Ok(bytes) => bytes,
+        Err(message) => return Some(Err(message)),
+    };
+    let element_at = |i: usize| std::array::from_fn(|c| read(&bytes[i * stride + c * size..]));
+    Some(Ok((0..count).map(element_at).collect()))
 }
 
 /// Every component of every element of an accessor, in order, as f64 (exact for all glTF
@@ -461,6 +516,96 @@ mod tests {
         assert_eq!(percent_decode("bad%2"), None);
         assert_eq!(percent_decode("bad%zz"), None);
         assert_eq!(percent_decode("%ff"), None);
+    }
+
+    /// A one-primitive document: `positions` stored interleaved with a padding float (a
+    /// 16-byte stride) after `lead` bytes, then `corners` as `index_type` (5121, 5123 or
+    /// 5125).
+    fn document(positions: &[[f32; 3]], corners: &[u32], index_type: u32, lead: usize) -> String {
+        let mut buffer = vec![0xAB_u8; lead];
+        for p in positions {
+            for c in p.iter().chain(&[-7.0]) {
+                buffer.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        let index_offset = buffer.len();
+        let (lo, hi) = positions.iter().fold(
+            ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+            |(lo, hi), p| {
+                (
+                    [0, 1, 2].map(|k| lo[k].min(p[k])),
+                    [0, 1, 2].map(|k| hi[k].max(p[k])),
+                )
+            },
+        );
+        for &i in corners {
+            match index_type {
+                5121 => buffer.push(i as u8),
+                5123 => buffer.extend_from_slice(&(i as u16).to_le_bytes()),
+                _ => buffer.extend_from_slice(&i.to_le_bytes()),
+            }
+        }
+        serde_json::json!({
+            "asset": {"version": "2.0"},
+            "buffers": [{"byteLength": buffer.len(), "uri": format!(
+                "data:application/octet-stream;base64,{}",
+                base64::engine::general_purpose::STANDARD.encode(&buffer))}],
+            "bufferViews": [
+                {"buffer": 0, "byteOffset": lead, "byteLength": index_offset - lead,
+                 "byteStride": 16},
+                {"buffer": 0, "byteOffset": index_offset, "byteLength": buffer.len() - index_offset}
+            ],
+            "accessors": [
+                {"bufferView": 0, "componentType": 5126, "count": positions.len(),
+                 "type": "VEC3", "min": lo, "max": hi},
+                {"bufferView": 1, "componentType": index_type, "count": corners.len(),
+                 "type": "SCALAR"}
+            ],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+            "nodes": [{"mesh": 0}],
+            "scenes": [{"nodes": [0]}]
+        })
+        .to_string()
+    }
+
+    #[test]
+    fn positions_and_indices_of_every_index_type_and_a_stride_are_read_exactly() {
+        let positions = [
+            [0.1, -2.5, 3.0e-7],
+            [f32::MAX, 1.0, -0.0],
+            [7.25, f32::MIN_POSITIVE, 1.0e30],
+            [-1.0, 0.5, 2.0],
+        ];
+        let corners = [0, 1, 2, 2, 3, 0];
+        for index_type in [5121, 5123, 5125] {
+            for lead in [0, 4, 12] {
+                let text = document(&positions, &corners, index_type, lead);
+                let mesh = parse(text.as_bytes(), Path::new("t.gltf"))
+                    .unwrap_or_else(|e| panic!("{index_type} {lead}: {e}"));
+                let geometry = &mesh.geometries[0];
+                let bits =
+                    |p: &[[f32; 3]]| p.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&geometry.positions),
+                    bits(&positions),
+                    "{index_type} {lead}"
+                );
+                assert_eq!(
+                    geometry.triangles,
+                    [[0, 1, 2], [2, 3, 0]],
+                    "{index_type} {lead}"
+                );
+            }
+        }
+        // An index past the vertices names the accessor, the index's place and its value.
+        let text = document(&positions, &[0, 1, 4], 5125, 0);
+        let error = parse(text.as_bytes(), Path::new("t.gltf"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("accessors[1]") && error.contains("index 2 is 4"),
+            "{error}"
+        );
     }
 
     #[test]
