@@ -526,19 +526,36 @@ impl Scene {
     /// evidence of the last packet: [`crate::packet::Visits`]).
     pub fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         assert_eq!(rays.len(), out.len());
+        let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
-            let mut tmax = [0f64; PACKET];
-            for (k, ray) in rays.iter().enumerate() {
-                out[k] = nearest_plane(&self.planes, ray);
-                tmax[k] = out[k].map_or(ray.tmax, |h| h.t);
+            let mut prepared = [TriangleRay::EMPTY; PACKET];
+            if analytic {
+                let mut tmax = [0f64; PACKET];
+                for (k, ray) in rays.iter().enumerate() {
+                    out[k] = nearest_plane(&self.planes, ray);
+                    tmax[k] = out[k].map_or(ray.tmax, |h| h.t);
+                }
+                self.closest_spheres(rays, &tmax[..rays.len()], out);
+                for (k, ray) in rays.iter().enumerate() {
+                    prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
+                }
+            } else {
+                // Only triangles: nothing bounds the rays but their own interval, which
+                // camera rays share, so it is rounded to float32 once for a run of them.
+                out.fill(None);
+                // Compared bit for bit: −0 and +0 round to different zeros.
+                let bits = |ray: &Ray| (ray.tmin.to_bits(), ray.tmax.to_bits());
+                let round = |ray: &Ray| (bvh::f32_at_most(ray.tmin), bvh::f32_at_least(ray.tmax));
+                let mut rounded = (bits(&rays[0]), round(&rays[0]));
+                for (k, ray) in rays.iter().enumerate() {
+                    if bits(ray) != rounded.0 {
+                        rounded = (bits(ray), round(ray));
+                    }
+                    prepared[k] = TriangleRay::rounded(ray, rounded.1);
+                }
             }
-            self.closest_spheres(rays, &tmax[..rays.len()], out);
             if self.triangles.bvh.is_empty() {
                 continue;
-            }
-            let mut prepared = [TriangleRay::EMPTY; PACKET];
-            for (k, ray) in rays.iter().enumerate() {
-                prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
             }
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
@@ -947,11 +964,17 @@ impl TriangleRay {
 
     #[inline(always)]
     pub(crate) fn new(ray: &Ray, tmax: f64) -> TriangleRay {
+        TriangleRay::rounded(ray, (bvh::f32_at_most(ray.tmin), bvh::f32_at_least(tmax)))
+    }
+
+    /// The ray with its interval `(tmin, tmax)` already rounded outward to float32.
+    #[inline(always)]
+    fn rounded(ray: &Ray, (tmin, tmax): (f32, f32)) -> TriangleRay {
         TriangleRay {
             origin: ray.origin.as_vec3().to_array(),
             direction: ray.direction.as_vec3().to_array(),
-            tmin: bvh::f32_at_most(ray.tmin),
-            tmax: bvh::f32_at_least(tmax),
+            tmin,
+            tmax,
         }
     }
 

@@ -1100,6 +1100,52 @@ fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
 }
 
 #[test]
+fn batch_queries_over_a_mesh_keep_each_rays_own_interval() {
+    // Camera rays share their interval, and a batch over triangles alone rounds it once
+    // for a run of rays; rays whose intervals change within a batch, in runs and one by
+    // one, must each keep their own: the front face, the back face past a `tmin`, or
+    // nothing before a `tmax`.
+    let scene = Scene::build(&placed(&procedural::icosphere(3), DMat4::IDENTITY));
+    let eye = DVec3::new(0.2, 0.4, -4.0);
+    let intervals = [
+        (0.0, f64::INFINITY),
+        (0.0, 3.2),
+        (3.9, f64::INFINITY),
+        (4.1, 4.7),
+        (2.0, 2.0),
+    ];
+    let rays: Vec<Ray> = (0..64 * 64)
+        .map(|i| {
+            let (tile, k) = (i / 64, i % 64);
+            let (x, y) = (tile % 8 * 8 + k % 8, tile / 8 * 8 + k / 8);
+            let d = crate::util::default_camera_direction(x, y, 64, 64);
+            // Runs of three rays per interval in even tiles, a new interval every ray in
+            // odd ones.
+            let which = if tile % 2 == 0 { k / 3 } else { k * 7 };
+            let (tmin, tmax) = intervals[which as usize % intervals.len()];
+            Ray {
+                tmin,
+                tmax,
+                ..ray(eye, eye + DVec3::from_array(d))
+            }
+        })
+        .collect();
+    let (closest, any) = batch_queries(&scene, &rays);
+    let (mut front, mut back) = (0, 0);
+    for (i, r) in rays.iter().enumerate() {
+        assert_eq!(closest[i], scene.closest_hit(r), "ray {i}");
+        assert_eq!(any[i], scene.any_hit(r), "ray {i}");
+        match closest[i] {
+            Some(hit) if hit.t < 3.9 => front += 1,
+            Some(_) => back += 1,
+            None => {}
+        }
+    }
+    // Both faces are found, so the intervals decided the answers.
+    assert!(front > 30 && back > 30, "front {front}, back {back}");
+}
+
+#[test]
 fn rays_through_shared_vertices_find_the_same_nearest_hit_in_any_visiting_order() {
     // A computed triangle distance can round a few ulps below its box's computed entry:
     // a search that has already found a hit must still enter such boxes, or it misses a
