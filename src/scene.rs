@@ -528,7 +528,6 @@ impl Scene {
         assert_eq!(rays.len(), out.len());
         let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
-            let mut prepared = [TriangleRay::EMPTY; PACKET];
             if analytic {
                 let mut tmax = [0f64; PACKET];
                 for (k, ray) in rays.iter().enumerate() {
@@ -536,27 +535,17 @@ impl Scene {
                     tmax[k] = out[k].map_or(ray.tmax, |h| h.t);
                 }
                 self.closest_spheres(rays, &tmax[..rays.len()], out);
-                for (k, ray) in rays.iter().enumerate() {
-                    prepared[k] = TriangleRay::new(ray, out[k].map_or(ray.tmax, |h| h.t));
-                }
             } else {
-                // Only triangles: nothing bounds the rays but their own interval, which
-                // camera rays share, so it is rounded to float32 once for a run of them.
                 out.fill(None);
-                // Compared bit for bit: −0 and +0 round to different zeros.
-                let bits = |ray: &Ray| (ray.tmin.to_bits(), ray.tmax.to_bits());
-                let round = |ray: &Ray| (bvh::f32_at_most(ray.tmin), bvh::f32_at_least(ray.tmax));
-                let mut rounded = (bits(&rays[0]), round(&rays[0]));
-                for (k, ray) in rays.iter().enumerate() {
-                    if bits(ray) != rounded.0 {
-                        rounded = (bits(ray), round(ray));
-                    }
-                    prepared[k] = TriangleRay::rounded(ray, rounded.1);
-                }
             }
             if self.triangles.bvh.is_empty() {
                 continue;
             }
+            let prepared = if analytic {
+                triangle_rays(rays, |k, ray| out[k].map_or(ray.tmax, |h| h.t))
+            } else {
+                triangle_rays(rays, |_, ray| ray.tmax)
+            };
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
@@ -591,12 +580,17 @@ impl Scene {
     /// runs traced as packets as in [`Scene::closest_hits`].
     pub fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len());
+        let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             let mut hint = AnyHitHint::default();
-            for (ray, out) in rays.iter().zip(out.iter_mut()) {
-                *out = self.any_plane(ray);
+            if analytic {
+                for (ray, out) in rays.iter().zip(out.iter_mut()) {
+                    *out = self.any_plane(ray);
+                }
+                self.any_spheres(rays, out, &mut hint);
+            } else {
+                out.fill(false);
             }
-            self.any_spheres(rays, out, &mut hint);
             if self.triangles.bvh.is_empty() {
                 continue;
             }
@@ -606,12 +600,14 @@ impl Scene {
                 let n = rays.len();
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
                 let traced = self.traced_as_packet(PacedTree::Triangles, self.simd, || {
-                    let mut prepared = [TriangleRay::EMPTY; PACKET];
-                    for (k, ray) in rays.iter().enumerate() {
-                        // A ray already hit needs no triangle: an empty interval.
-                        let tmax = if out[k] { f64::NEG_INFINITY } else { ray.tmax };
-                        prepared[k] = TriangleRay::new(ray, tmax);
-                    }
+                    // A ray already hit needs no triangle: an empty interval.
+                    let prepared =
+                        triangle_rays(
+                            rays,
+                            |k, ray| {
+                                if out[k] { f64::NEG_INFINITY } else { ray.tmax }
+                            },
+                        );
                     // SAFETY: as above.
                     unsafe {
                         crate::packet::any(
@@ -952,6 +948,31 @@ pub struct TriangleRay {
     pub direction: [f32; 3],
     pub tmin: f32,
     pub tmax: f32,
+}
+
+/// Up to [`PACKET`] rays rounded for the triangle kernels, ray `k` with the interval
+/// `(tmin, tmax(k, ray))`. A run of rays with the same interval (camera rays share theirs)
+/// has it rounded to float32 once; intervals are compared bit for bit, as −0 and +0 round
+/// to different zeros.
+#[inline(always)]
+fn triangle_rays(rays: &[Ray], tmax: impl Fn(usize, &Ray) -> f64) -> [TriangleRay; PACKET] {
+    let mut prepared = [TriangleRay::EMPTY; PACKET];
+    let Some(first) = rays.first() else {
+        return prepared;
+    };
+    let round = |tmin: f64, tmax: f64| {
+        let interval = (bvh::f32_at_most(tmin), bvh::f32_at_least(tmax));
+        ((tmin.to_bits(), tmax.to_bits()), interval)
+    };
+    let mut last = round(first.tmin, tmax(0, first));
+    for (k, ray) in rays.iter().enumerate() {
+        let (tmin, tmax) = (ray.tmin, tmax(k, ray));
+        if (tmin.to_bits(), tmax.to_bits()) != last.0 {
+            last = round(tmin, tmax);
+        }
+        prepared[k] = TriangleRay::rounded(ray, last.1);
+    }
+    prepared
 }
 
 impl TriangleRay {
