@@ -398,7 +398,7 @@ fn plain_decimal_prefix(text: &[u8]) -> Option<(f32, usize)> {
 /// Checks that the next `n` words are numbers.
 fn numbers(words: &mut Words<'_>, n: usize) -> Option<()> {
     for _ in 0..n {
-        number(words.next()?)?;
+        words.number()?;
     }
     Some(())
 }
