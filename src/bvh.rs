@@ -361,7 +361,20 @@ impl<T: Scalar> Bvh<T> {
         leaf_cost: LeafCost,
         leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
     ) -> (Bvh<T>, Vec<u32>) {
-        if boxes.is_empty() {
+        Bvh::build_from(boxes.len(), |i| boxes[i], params, leaf_cost, leaf_items)
+    }
+
+    /// [`Bvh::build`] over `count` primitives, the box of primitive `i` being
+    /// `box_of(i)`, computed once each as the binary tree's leaves are made, so no list of
+    /// boxes is held beside them. Gives the tree [`Bvh::build`] gives for those boxes.
+    pub fn build_from(
+        count: usize,
+        box_of: impl Fn(usize) -> Aabb + Sync,
+        params: BvhBuildParams,
+        leaf_cost: LeafCost,
+        leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
+    ) -> (Bvh<T>, Vec<u32>) {
+        if count == 0 {
             let empty = Bvh {
                 nodes: Vec::new(),
                 bounds: Bounds::EMPTY,
@@ -370,13 +383,7 @@ impl<T: Scalar> Bvh<T> {
             };
             return (empty, Vec::new());
         }
-        let mut bvh2 = obvhs::ploc::PlocBuilder::with_capacity(boxes.len()).build(
-            params.ploc_search_distance,
-            boxes,
-            (0..boxes.len() as u32).collect(),
-            params.sort_precision,
-            params.search_depth_threshold,
-        );
+        let mut bvh2 = ploc(count, box_of, &params);
         obvhs::bvh2::reinsertion::ReinsertionOptimizer::default().run(
             &mut bvh2,
             params.reinsertion_batch_ratio,
@@ -684,6 +691,63 @@ impl<T: Scalar> Bvh<T> {
         }
     }
 }
+
+/// obvhs' PLOC build of a binary tree over `count` (> 0) primitives, primitive `i` having
+/// the box `box_of(i)`: the tree `PlocBuilder::build` gives for those boxes, with its
+/// leaves made here straight from `box_of`, in parallel. (`PlocBuilder::build` wants a
+/// list of boxes, which for a million triangles is 32 MB written and read once, and it
+/// gathers the leaves' parallel work into a list of its own, another 24 MB; page faults
+/// on fresh memory are dear.)
+fn ploc(count: usize, box_of: impl Fn(usize) -> Aabb + Sync, params: &BvhBuildParams) -> Bvh2 {
+    use obvhs::bvh2::node::Bvh2Node;
+    use obvhs::ploc::{PlocBuilder, PlocSearchDistance};
+
+    let mut bvh2 = Bvh2::zeroed(count);
+    (bvh2.primitive_indices.par_iter_mut().enumerate())
+        .with_min_len(PARALLEL_LEAVES)
+        .for_each(|(i, index)| *index = i as u32);
+    let leaves: Vec<Bvh2Node> = (0..count)
+        .into_par_iter()
+        .with_min_len(PARALLEL_LEAVES)
+        .map(|i| Bvh2Node::new(box_of(i), 1, i as u32))
+        .collect();
+    // The union of the leaves' boxes, as obvhs takes it (exact: only minima and maxima).
+    let total = (leaves.par_iter().with_min_len(PARALLEL_LEAVES))
+        .fold(Aabb::empty, |mut total, leaf| {
+            total.extend(leaf.aabb().min);
+            total.extend(leaf.aabb().max);
+            total
+        })
+        .reduce(Aabb::empty, |a, b| a.union(&b));
+    let mut builder = PlocBuilder::new();
+    builder.current_nodes = leaves;
+    let (precision, threshold) = (params.sort_precision, params.search_depth_threshold);
+    let bvh = &mut bvh2;
+    match params.ploc_search_distance {
+        PlocSearchDistance::Minimum => {
+            builder.build_ploc_from_leaves::<1, false>(bvh, total, precision, threshold)
+        }
+        PlocSearchDistance::VeryLow => {
+            builder.build_ploc_from_leaves::<2, false>(bvh, total, precision, threshold)
+        }
+        PlocSearchDistance::Low => {
+            builder.build_ploc_from_leaves::<6, false>(bvh, total, precision, threshold)
+        }
+        PlocSearchDistance::Medium => {
+            builder.build_ploc_from_leaves::<14, false>(bvh, total, precision, threshold)
+        }
+        PlocSearchDistance::High => {
+            builder.build_ploc_from_leaves::<24, false>(bvh, total, precision, threshold)
+        }
+        PlocSearchDistance::VeryHigh => {
+            builder.build_ploc_from_leaves::<32, false>(bvh, total, precision, threshold)
+        }
+    }
+    bvh2
+}
+
+/// Leaves made by one task of [`ploc`] at least (fewer would not repay the split).
+const PARALLEL_LEAVES: usize = 1 << 14;
 
 /// Subtrees of fewer primitives than this are laid out in parallel by
 /// [`Bvh::from_bvh2`] (larger ones are split further first).
@@ -1022,6 +1086,57 @@ mod tests {
                         "{preset:?}: a primitive is missing"
                     );
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn leaves_made_from_a_box_function_give_obvhs_own_binary_tree() {
+        // `ploc` makes the leaves itself instead of handing obvhs a list of boxes; the
+        // tree must be the one obvhs' `PlocBuilder::build` makes from that list, node for
+        // node, for every search distance, and on both sides of the size (500k) at which
+        // obvhs makes its leaves in parallel.
+        for (count, presets) in [
+            (1, &BuildPreset::ALL[..]),
+            (2, &BuildPreset::ALL[..]),
+            (3, &BuildPreset::ALL[..]),
+            (100, &BuildPreset::ALL[..]),
+            (5000, &BuildPreset::ALL[..]),
+            (600_000, &[BuildPreset::default()][..]),
+        ] {
+            let boxes = scattered_boxes(count);
+            for &preset in presets {
+                let params = preset.params(4);
+                let ours = ploc(count, |i| boxes[i], &params);
+                // (`PlocBuilder::new`, not `with_capacity`: the latter's zeroed per-thread
+                // boxes put the origin into the total box obvhs takes from 500k boxes.)
+                let theirs = obvhs::ploc::PlocBuilder::new().build(
+                    params.ploc_search_distance,
+                    &boxes,
+                    (0..count as u32).collect(),
+                    params.sort_precision,
+                    params.search_depth_threshold,
+                );
+                let fields = |bvh: &Bvh2| -> Vec<_> {
+                    (bvh.nodes.iter())
+                        .map(|n| {
+                            let b = n.aabb();
+                            let (min, max) = (b.min.to_array(), b.max.to_array());
+                            (
+                                min.map(f32::to_bits),
+                                max.map(f32::to_bits),
+                                n.prim_count,
+                                n.first_index,
+                            )
+                        })
+                        .collect()
+                };
+                assert!(
+                    fields(&ours) == fields(&theirs),
+                    "{count} boxes, {preset:?}: the nodes differ"
+                );
+                assert_eq!(ours.primitive_indices, theirs.primitive_indices);
+                assert_eq!(ours.max_depth, theirs.max_depth);
             }
         }
     }

@@ -1072,22 +1072,26 @@ fn build_triangles(
         .into_par_iter()
         .filter(|&i| !triangle::is_degenerate(&triangles[i as usize]))
         .collect();
-    let boxes: Vec<Aabb> = kept
-        .par_iter()
-        .map(|&i| {
-            let [a, b, c] = triangles[i as usize].map(Vec3A::from);
-            Aabb::new(a.min(b).min(c), a.max(b).max(c))
-        })
-        .collect();
+    let box_of = |k: usize| {
+        let [a, b, c] = triangles[kept[k] as usize].map(Vec3A::from);
+        Aabb::new(a.min(b).min(c), a.max(b).max(c))
+    };
     // Triangles are laid out densely in leaf order, four to a block; a leaf covers the
     // blocks its range touches. Testing a neighbouring leaf's triangles on the way
     // is harmless (they are real triangles of the scene) and keeps blocks full.
     let block = BLOCK as u32;
     let params = preset.params(TRIANGLES_PER_LEAF);
-    let (bvh, order) = Bvh::build(&boxes, params, LeafCost::TRIANGLE_BLOCKS, |first, count| {
+    let leaf_blocks = |first, count| {
         let (first_block, last_block) = (first / block, (first + count - 1) / block);
         (first_block, last_block - first_block + 1)
-    });
+    };
+    let (bvh, order) = Bvh::build_from(
+        kept.len(),
+        box_of,
+        params,
+        LeafCost::TRIANGLE_BLOCKS,
+        leaf_blocks,
+    );
     let order: Vec<u32> = order.into_iter().map(|p| kept[p as usize]).collect();
     let blocks = order
         .par_chunks(BLOCK)
