@@ -80,20 +80,13 @@ struct Choice {
 }
 
 impl Choice {
-    fn pack(self) -> u8 {
-        let kind = match self.kind {
-            Kind::Leaf => 0,
-            Kind::Node => 1,
-            Kind::Split => 2,
-        };
-        kind << 6 | self.left << 3 | self.right
-    }
-
+    /// The choice in `byte`: its kind in the top two bits (`KIND_…`), then three bits for
+    /// each child's slots (see [`split_slots`]).
     fn unpack(byte: u8) -> Choice {
         Choice {
-            kind: match byte >> 6 {
-                0 => Kind::Leaf,
-                1 => Kind::Node,
+            kind: match byte & 0xc0 {
+                KIND_LEAF => Kind::Leaf,
+                KIND_NODE => Kind::Node,
                 _ => Kind::Split,
             },
             left: byte >> 3 & 7,
@@ -134,7 +127,12 @@ impl<'a> Collapse<'a> {
 
     /// The number of primitives under binary node `n`.
     pub fn primitives(&self, n: usize) -> u32 {
-        self.primitives[n].load(Ordering::Relaxed)
+        let node = &self.bvh2.nodes[n];
+        if node.is_leaf() {
+            node.prim_count
+        } else {
+            self.primitives[n].load(Ordering::Relaxed)
+        }
     }
 
     /// Whether binary node `n`, given a slot of its own, is a leaf.
@@ -169,12 +167,6 @@ impl<'a> Collapse<'a> {
     fn choice(&self, n: usize, i: u8) -> Choice {
         let packed = self.choices[n].load(Ordering::Relaxed);
         Choice::unpack((packed >> (8 * i)) as u8)
-    }
-
-    fn store(&self, n: usize, choices: &[Choice; SLOTS - 1]) {
-        let packed = (choices.iter().enumerate())
-            .fold(0u64, |acc, (i, c)| acc | u64::from(c.pack()) << (8 * i));
-        self.choices[n].store(packed, Ordering::Relaxed);
     }
 
     /// Costs of node `n`'s subtree, the top levels in parallel.
@@ -230,12 +222,11 @@ impl<'a> Collapse<'a> {
         done.pop().expect("root costed")
     }
 
+    /// A binary leaf's costs. Nothing is stored for it: readers ask the binary tree first
+    /// whether a node is a leaf, and take a leaf's primitive count from there.
     fn leaf(&self, n: usize) -> Costs {
         let node = &self.bvh2.nodes[n];
         let cost = self.leaf_cost.of(node.prim_count, node.aabb().half_area());
-        // Every choice is `Leaf` (all zero bits).
-        self.choices[n].store(0, Ordering::Relaxed);
-        self.primitives[n].store(node.prim_count, Ordering::Relaxed);
         Costs {
             cost: [cost; SLOTS - 1],
             primitives: node.prim_count,
@@ -246,11 +237,10 @@ impl<'a> Collapse<'a> {
         let area = self.bvh2.nodes[n].aabb().half_area();
         let primitives = left.primitives + right.primitives;
         let mut cost = [0f32; SLOTS - 1];
-        let mut choices = [Choice {
-            kind: Kind::Leaf,
-            left: 0,
-            right: 0,
-        }; SLOTS - 1];
+        // Each choice packed as `Choice::unpack` reads it; the candidates are compared in a
+        // fixed order with `<`, so ties go to the first, and selected without branches
+        // (which of them wins is unpredictable).
+        let mut choices = [0u8; SLOTS - 1];
 
         // One slot: a leaf, or a wide node sharing its eight slots between the children.
         let as_leaf = if primitives <= self.max_leaf {
@@ -258,56 +248,61 @@ impl<'a> Collapse<'a> {
         } else {
             f32::INFINITY
         };
-        let mut shared = f32::INFINITY;
-        let (mut l, mut r) = (u8::MAX, u8::MAX);
+        let (mut shared, mut slots) = (f32::INFINITY, split_slots(u8::MAX, u8::MAX));
         for k in 0..SLOTS - 1 {
             let c = left.cost[k] + right.cost[SLOTS - 2 - k];
-            if c < shared {
-                shared = c;
-                (l, r) = (k as u8, (SLOTS - 2 - k) as u8);
-            }
+            let better = c < shared;
+            shared = if better { c } else { shared };
+            slots = if better {
+                split_slots(k as u8, (SLOTS - 2 - k) as u8)
+            } else {
+                slots
+            };
         }
         let as_node = shared + area;
         (cost[0], choices[0]) = if as_leaf < as_node {
-            (
-                as_leaf,
-                Choice {
-                    kind: Kind::Leaf,
-                    left: l,
-                    right: r,
-                },
-            )
+            (as_leaf, KIND_LEAF | slots)
         } else {
-            (
-                as_node,
-                Choice {
-                    kind: Kind::Node,
-                    left: l,
-                    right: r,
-                },
-            )
+            (as_node, KIND_NODE | slots)
         };
 
         // More slots: share them between the children, or do as with one fewer.
         for i in 1..SLOTS - 1 {
-            cost[i] = cost[i - 1];
-            choices[i] = choices[i - 1];
+            let (mut best, mut choice) = (cost[i - 1], choices[i - 1]);
             for k in 0..i {
                 let c = left.cost[k] + right.cost[i - k - 1];
-                if c < cost[i] {
-                    cost[i] = c;
-                    choices[i] = Choice {
-                        kind: Kind::Split,
-                        left: k as u8,
-                        right: (i - k - 1) as u8,
-                    };
-                }
+                let better = c < best;
+                best = if better { c } else { best };
+                choice = if better {
+                    KIND_SPLIT | split_slots(k as u8, (i - k - 1) as u8)
+                } else {
+                    choice
+                };
             }
+            (cost[i], choices[i]) = (best, choice);
         }
-        self.store(n, &choices);
+        self.choices[n].store(u64::from_le_bytes(pad(choices)), Ordering::Relaxed);
         self.primitives[n].store(primitives, Ordering::Relaxed);
         Costs { cost, primitives }
     }
+}
+
+/// The kinds of packed choices ([`Choice::unpack`]).
+const KIND_LEAF: u8 = 0;
+const KIND_NODE: u8 = 1 << 6;
+const KIND_SPLIT: u8 = 2 << 6;
+
+/// A packed choice's slot fields, three bits each (`u8::MAX`, no sharing found, packs
+/// as 7).
+fn split_slots(left: u8, right: u8) -> u8 {
+    (left << 3 | right & 7) & 0x3f
+}
+
+/// Seven choices and a zero byte, in the order [`Collapse::choice`] reads them.
+fn pad(choices: [u8; SLOTS - 1]) -> [u8; 8] {
+    let mut bytes = [0; 8];
+    bytes[..SLOTS - 1].copy_from_slice(&choices);
+    bytes
 }
 
 /// A subtree's cost for each number of slots, and its primitive count.
@@ -319,8 +314,165 @@ struct Costs {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bvh::{BuildPreset, Bvh};
+    use crate::bvh::{BuildPreset, Bvh, LEAF, leaf_range};
     use obvhs::aabb::Aabb;
+    use std::collections::HashMap;
+
+    fn half_area(min: [f32; 3], max: [f32; 3]) -> f64 {
+        let d = [0, 1, 2].map(|a| f64::from(max[a]) - f64::from(min[a]));
+        d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+    }
+
+    /// The cheapest wide tree under binary node `n` made a wide node, found by listing
+    /// every set of at most eight descendants that can fill its slots (float64).
+    struct Exhaustive<'a> {
+        bvh2: &'a Bvh2,
+        max_leaf: u32,
+        cost: LeafCost,
+        wide: HashMap<usize, f64>,
+    }
+
+    impl Exhaustive<'_> {
+        fn area(&self, n: usize) -> f64 {
+            let b = self.bvh2.nodes[n].aabb();
+            half_area(b.min.to_array(), b.max.to_array())
+        }
+
+        fn primitives(&self, n: usize) -> u32 {
+            let node = &self.bvh2.nodes[n];
+            if node.is_leaf() {
+                return node.prim_count;
+            }
+            let first = node.first_index as usize;
+            self.primitives(first) + self.primitives(first + 1)
+        }
+
+        /// Every set of at most eight descendants of inner node `n` that covers its
+        /// primitives, each set drawn from both children.
+        fn fillings(&self, n: usize) -> Vec<Vec<usize>> {
+            let first = self.bvh2.nodes[n].first_index as usize;
+            let sides = [first, first + 1].map(|c| {
+                let mut options = vec![vec![c]];
+                if !self.bvh2.nodes[c].is_leaf() {
+                    options.extend(self.fillings(c));
+                }
+                options
+            });
+            let mut all = Vec::new();
+            for a in &sides[0] {
+                for b in &sides[1] {
+                    if a.len() + b.len() <= SLOTS {
+                        all.push([a.clone(), b.clone()].concat());
+                    }
+                }
+            }
+            all
+        }
+
+        fn slot(&mut self, n: usize) -> f64 {
+            let node = &self.bvh2.nodes[n];
+            let primitives = self.primitives(n);
+            let as_leaf = if node.is_leaf() || primitives <= self.max_leaf {
+                let groups = 1.0 + f64::from(primitives - 1) / f64::from(self.cost.group);
+                self.area(n) * f64::from(self.cost.per_group) * groups
+            } else {
+                f64::INFINITY
+            };
+            let as_node = if node.is_leaf() {
+                f64::INFINITY
+            } else {
+                self.wide(n)
+            };
+            as_leaf.min(as_node)
+        }
+
+        fn wide(&mut self, n: usize) -> f64 {
+            if let Some(&cost) = self.wide.get(&n) {
+                return cost;
+            }
+            let best = (self.fillings(n).into_iter())
+                .map(|set| set.into_iter().map(|f| self.slot(f)).sum::<f64>())
+                .fold(f64::INFINITY, f64::min);
+            let cost = self.area(n) + best;
+            self.wide.insert(n, cost);
+            cost
+        }
+    }
+
+    /// What the wide tree under `child` costs: each node's box area, each leaf's cost.
+    fn wide_tree_cost(bvh: &Bvh<f32>, child: u32, cost: LeafCost, node_area: f64) -> f64 {
+        let node = &bvh.nodes()[child as usize];
+        let mut total = node_area;
+        for slot in 0..crate::bvh::WIDTH {
+            let reference = node.children[slot];
+            if reference == 0 {
+                continue;
+            }
+            let min = [0, 1, 2].map(|a| node.planes[0][a][slot]);
+            let max = [0, 1, 2].map(|a| node.planes[1][a][slot]);
+            let area = half_area(min, max);
+            total += if reference & LEAF != 0 {
+                let (_, primitives) = leaf_range(reference);
+                let groups = 1.0 + f64::from(primitives - 1) / f64::from(cost.group);
+                area * f64::from(cost.per_group) * groups
+            } else {
+                wide_tree_cost(bvh, reference, cost, area)
+            };
+        }
+        total
+    }
+
+    #[test]
+    fn small_trees_collapse_into_the_cheapest_wide_tree() {
+        // Against every way of filling every wide node's slots, listed one by one: a
+        // choice packed or read back wrong, a cost or a tie taken wrong, builds a dearer
+        // tree (or a broken one) here.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for count in [9, 12, 17, 24] {
+            for trial in 0..6 {
+                let boxes: Vec<Aabb> = (0..count)
+                    .map(|_| {
+                        let lo = glam::Vec3A::new(next(), next(), next());
+                        let size = glam::Vec3A::new(next(), next(), next()) * 0.3;
+                        Aabb::new(lo, lo + size)
+                    })
+                    .collect();
+                let bvh2 = obvhs::ploc::PlocBuilder::new().build(
+                    obvhs::ploc::PlocSearchDistance::Minimum,
+                    &boxes,
+                    (0..count as u32).collect(),
+                    obvhs::ploc::SortPrecision::U64,
+                    0,
+                );
+                for (max_leaf, cost) in [1, 3, 4, 8]
+                    .into_iter()
+                    .flat_map(|m| [(m, LeafCost::ONE_BY_ONE), (m, LeafCost::TRIANGLE_BLOCKS)])
+                {
+                    let (bvh, _): (Bvh<f32>, _) =
+                        Bvh::from_bvh2(&bvh2, max_leaf, cost, |first, count| (first, count));
+                    let root = bvh2.nodes[0].aabb();
+                    let root_area = half_area(root.min.to_array(), root.max.to_array());
+                    let built = wide_tree_cost(&bvh, 0, cost, root_area);
+                    let mut exhaustive = Exhaustive {
+                        bvh2: &bvh2,
+                        max_leaf,
+                        cost,
+                        wide: HashMap::new(),
+                    };
+                    let best = exhaustive.wide(0);
+                    let context = format!("{count} boxes, trial {trial}, {max_leaf}, {cost:?}");
+                    assert!(built <= best * (1.0 + 1e-5), "{context}: {built} > {best}");
+                    assert!(built >= best * (1.0 - 1e-5), "{context}: {built} < {best}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn a_leaf_costs_the_blocks_its_run_touches_on_average() {
