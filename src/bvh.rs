@@ -693,11 +693,11 @@ impl<T: Scalar> Bvh<T> {
 }
 
 /// obvhs' PLOC build of a binary tree over `count` (> 0) primitives, primitive `i` having
-/// the box `box_of(i)`: the tree `PlocBuilder::build` gives for those boxes, with its
-/// leaves made here straight from `box_of`, in parallel. (`PlocBuilder::build` wants a
-/// list of boxes, which for a million triangles is 32 MB written and read once, and it
-/// gathers the leaves' parallel work into a list of its own, another 24 MB; page faults
-/// on fresh memory are dear.)
+/// the box `box_of(i)`: the tree `PlocBuilder::new().build` gives for those boxes, with
+/// its leaves made here straight from `box_of`, in parallel. (`build` wants a list of
+/// boxes, which for a million triangles is 32 MB written and read once, and from 500k
+/// boxes gathers its leaves' parallel work into a list of its own, another 24 MB; page
+/// faults on fresh memory are dear.)
 fn ploc(count: usize, box_of: impl Fn(usize) -> Aabb + Sync, params: &BvhBuildParams) -> Bvh2 {
     use obvhs::bvh2::node::Bvh2Node;
     use obvhs::ploc::{PlocBuilder, PlocSearchDistance};
