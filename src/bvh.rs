@@ -948,11 +948,9 @@ mod tests {
             1.0 + 1e-12,
             f64::from(f32::MIN_POSITIVE),
         ];
-        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut random = crate::test_random::XorShift::new(0x2545_f491_4f6c_dd1d);
         for _ in 0..100_000 {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
+            let state = random.next_u64();
             // Any sign, exponents from 2^-160 to 2^160.
             let x =
                 f64::from_bits(state & 0x800f_ffff_ffff_ffff | (863 + (state >> 54) % 320) << 52);
@@ -978,13 +976,8 @@ mod tests {
 
     /// Boxes scattered over many scales, with shared and repeated coordinates.
     fn scattered_boxes(count: usize) -> Vec<Aabb> {
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut random = crate::test_random::XorShift::new(0x9e37_79b9_7f4a_7c15);
+        let mut next = move || random.unit_f32();
         (0..count)
             .map(|i| {
                 let scale = [1e-3, 1.0, 1e4][i % 3];

@@ -309,13 +309,8 @@ mod tests {
     fn pinhole_rays_are_bit_for_bit_the_rays_one_by_one() {
         // Frames of every scale and orientation, and runs of every length around the
         // vector width (the rest goes one by one).
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-        };
+        let mut random = crate::test_random::XorShift::new(0x2545_f491_4f6c_dd1d);
+        let mut next = || random.unit_f64() * 2.0 - 1.0;
         for scale in [1e-9, 0.37, 1.0, 3e4, 1e12] {
             let mut v3 = || DVec3::new(next(), next(), next()) * scale;
             let frame = CameraFrame {

@@ -427,13 +427,8 @@ mod tests {
         // Against every way of filling every wide node's slots, listed one by one: a
         // choice packed or read back wrong, a cost or a tie taken wrong, builds a dearer
         // tree (or a broken one) here.
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut random = crate::test_random::XorShift::new(0x2545_f491_4f6c_dd1d);
+        let mut next = move || random.unit_f32();
         for count in [9, 12, 17, 24] {
             for trial in 0..6 {
                 let boxes: Vec<Aabb> = (0..count)

@@ -60,6 +60,9 @@ pub mod triangle;
 #[cfg(feature = "embree")]
 pub mod verify;
 
+#[cfg(test)]
+mod test_random;
+
 pub use error::{Error, JobError, ManifestError, MeshError};
 pub use hint::AnyHitHint;
 pub use manifest::Manifest;

@@ -700,13 +700,8 @@ mod tests {
         // Random plain decimals of up to twelve digits each side of the point, with a
         // seeded xorshift; and values exactly halfway between two `f32`s (an odd multiple
         // of half an `f32` step, written out in full).
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = |n: u64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state % n
-        };
+        let mut random = crate::test_random::XorShift::new(0x9e37_79b9_7f4a_7c15);
+        let mut next = |n: u64| random.below(n);
         for _ in 0..200_000 {
             let mut word = String::new();
             match next(3) {

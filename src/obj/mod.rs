@@ -36,13 +36,9 @@ mod tests {
     /// format allows (weights, colours, points, lines, relative and forward references,
     /// bad numbers, CRLF, tabs, UTF-8 comments, empty objects).
     fn random_obj(seed: u64) -> String {
-        let mut state = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
-        let mut next = move |n: u64| {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state % n
-        };
+        let mut random =
+            crate::test_random::XorShift::new(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1);
+        let mut next = move |n: u64| random.below(n);
         let number = |r: u64| match r % 6 {
             0 => "0".to_string(),
             1 => format!("-{}.{}", r % 97, r % 1013),
