@@ -722,26 +722,20 @@ fn ploc(count: usize, box_of: impl Fn(usize) -> Aabb + Sync, params: &BvhBuildPa
     let mut builder = PlocBuilder::new();
     builder.current_nodes = leaves;
     let (precision, threshold) = (params.sort_precision, params.search_depth_threshold);
-    let bvh = &mut bvh2;
+    // obvhs takes the search distance as a const parameter.
+    macro_rules! build_with_distance {
+        ($distance:literal) => {
+            builder
+                .build_ploc_from_leaves::<$distance, false>(&mut bvh2, total, precision, threshold)
+        };
+    }
     match params.ploc_search_distance {
-        PlocSearchDistance::Minimum => {
-            builder.build_ploc_from_leaves::<1, false>(bvh, total, precision, threshold)
-        }
-        PlocSearchDistance::VeryLow => {
-            builder.build_ploc_from_leaves::<2, false>(bvh, total, precision, threshold)
-        }
-        PlocSearchDistance::Low => {
-            builder.build_ploc_from_leaves::<6, false>(bvh, total, precision, threshold)
-        }
-        PlocSearchDistance::Medium => {
-            builder.build_ploc_from_leaves::<14, false>(bvh, total, precision, threshold)
-        }
-        PlocSearchDistance::High => {
-            builder.build_ploc_from_leaves::<24, false>(bvh, total, precision, threshold)
-        }
-        PlocSearchDistance::VeryHigh => {
-            builder.build_ploc_from_leaves::<32, false>(bvh, total, precision, threshold)
-        }
+        PlocSearchDistance::Minimum => build_with_distance!(1),
+        PlocSearchDistance::VeryLow => build_with_distance!(2),
+        PlocSearchDistance::Low => build_with_distance!(6),
+        PlocSearchDistance::Medium => build_with_distance!(14),
+        PlocSearchDistance::High => build_with_distance!(24),
+        PlocSearchDistance::VeryHigh => build_with_distance!(32),
     }
     bvh2
 }
