@@ -31,8 +31,8 @@ struct Lanes {
     inv_dir: [__m256; 3],
     inv_dir_far: [__m256; 3],
     /// Offsets, in floats from a node's start, of each axis's near and far planes.
-    near: [usize; 3],
-    far: [usize; 3],
+    near: &'static [usize; 3],
+    far: &'static [usize; 3],
     tmin8: __m256,
     tri: TriLanes<__m128>,
 }
@@ -103,22 +103,21 @@ pub(crate) struct RayConstants {
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
 pub(crate) unsafe fn ray_constants([dx, dy, dz]: [f32; 3]) -> RayConstants {
-    let (ax, ay, az) = (dx.abs(), dy.abs(), dz.abs());
-    // As `ShearedRay::new` chooses them.
-    let kz = if ax > ay {
-        if ax > az { 0 } else { 2 }
-    } else if ay > az {
-        1
-    } else {
-        2
-    };
-    let kx = (kz + 1) % 3;
-    let ky = (kx + 1) % 3;
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
         let one = _mm_set1_ps(1.0);
         let d = _mm_setr_ps(dx, dy, dz, 1.0);
-        let dk = _mm_permutevar_ps(d, _mm_setr_epi32(kx as i32, ky as i32, kz as i32, 3));
+        // The comparisons `ShearedRay::new` makes, |dx| > |dy|, |dx| > |dz|, |dy| > |dz|
+        // (false with a NaN), at once; their bits pick the axes from a table.
+        let abs = _mm_andnot_ps(_mm_set1_ps(-0.0), d);
+        let greater = _mm_cmp_ps::<_CMP_GT_OQ>(
+            _mm_permute_ps::<0b11_01_00_00>(abs),
+            _mm_permute_ps::<0b11_10_10_01>(abs),
+        );
+        let comparisons = (_mm_movemask_ps(greater) & 0b111) as usize;
+        let k = AXES[comparisons];
+        let order = _mm_loadu_si128(AXIS_ORDER[comparisons].as_ptr().cast());
+        let dk = _mm_permutevar_ps(d, order);
         let d_kz = _mm_permute_ps::<0b10_10_10_10>(dk);
         // Lanes 0–3: d[kx]/d[kz], d[ky]/d[kz], 1/d[kz], 1; lanes 4–7: 1/d, 1.
         let numerator = _mm256_set_m128(one, _mm_blend_ps::<0b1100>(dk, one));
@@ -129,10 +128,42 @@ pub(crate) unsafe fn ray_constants([dx, dy, dz]: [f32; 3]) -> RayConstants {
             inv,
             inv_far: _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE)),
             shear: _mm256_castps256_ps128(quotient),
-            k: [kx, ky, kz],
+            k,
         }
     }
 }
+
+/// The watertight test's axes `[kx, ky, kz]` as [`ShearedRay::new`] chooses them, for each
+/// outcome of its comparisons: bit 0 `|dx| > |dy|`, bit 1 `|dx| > |dz|`, bit 2 `|dy| > |dz|`.
+static AXES: [[usize; 3]; 8] = {
+    let mut table = [[0; 3]; 8];
+    let mut bits = 0;
+    while bits < 8 {
+        let kz = if bits & 1 != 0 {
+            if bits & 2 != 0 { 0 } else { 2 }
+        } else if bits & 4 != 0 {
+            1
+        } else {
+            2
+        };
+        let kx = (kz + 1) % 3;
+        table[bits] = [kx, (kx + 1) % 3, kz];
+        bits += 1;
+    }
+    table
+};
+
+/// [`AXES`] as a permutation of a vector `(x, y, z, w)` into `(kx, ky, kz, w)`.
+static AXIS_ORDER: [[i32; 4]; 8] = {
+    let mut table = [[0; 4]; 8];
+    let mut bits = 0;
+    while bits < 8 {
+        let [kx, ky, kz] = AXES[bits];
+        table[bits] = [kx as i32, ky as i32, kz as i32, 3];
+        bits += 1;
+    }
+    table
+};
 
 /// Whether the ray enters `bounds` with `tmin <= t <= tmax`, by [`node_test`]'s arithmetic
 /// (the same reciprocals, products and NaN-ignoring order). For the tree's bounds this is
@@ -177,14 +208,85 @@ unsafe fn enters(bounds: &Bounds<f32>, ray: &TriangleRay, tmax: f32) -> bool {
     }
 }
 
+/// Offsets, in floats from a node's start, of the near planes (`[0]`) and far planes
+/// (`[1]`) of each axis, for each octant (bit `a` set where the direction's component `a`
+/// has its sign bit set). Looked up, not computed, in each ray's set-up.
+static PLANE_OFFSETS: [[[usize; 3]; 2]; 8] = {
+    let mut table = [[[0; 3]; 2]; 8];
+    let mut octant = 0;
+    while octant < 8 {
+        let mut axis = 0;
+        while axis < 3 {
+            let negative = (octant >> axis) & 1;
+            table[octant][0][axis] = (negative * 3 + axis) * WIDTH;
+            table[octant][1][axis] = ((1 - negative) * 3 + axis) * WIDTH;
+            axis += 1;
+        }
+        octant += 1;
+    }
+    table
+};
+
+/// [`TriangleRay::new`]: the ray in float32 with `(tmin, tmax)` rounded outward, as
+/// [`f32_at_most`](crate::bvh::f32_at_most) and [`f32_at_least`](crate::bvh::f32_at_least)
+/// round them (the same conversions and integer steps, bit for bit), both bounds in one
+/// register instead of one after the other.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn triangle_ray(ray: &Ray, tmax: f64) -> TriangleRay {
+    // SAFETY: AVX2 is enabled in the caller.
+    let [tmin, tmax] = unsafe { interval_f32(ray.tmin, tmax) };
+    TriangleRay {
+        origin: ray.origin.as_vec3().to_array(),
+        direction: ray.direction.as_vec3().to_array(),
+        tmin,
+        tmax,
+    }
+}
+
+/// `[f32_at_most(tmin), f32_at_least(tmax)]`, computed side by side.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn interval_f32(tmin: f64, tmax: f64) -> [f32; 2] {
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        let exact = _mm_setr_pd(tmin, tmax);
+        let rounded = _mm_cvtpd_ps(exact);
+        let back = _mm_cvtps_pd(rounded);
+        // All ones where the bound must step outward: tmin rounded up, tmax rounded down
+        // (never with a NaN).
+        let step = _mm_castpd_si128(_mm_blend_pd::<0b10>(
+            _mm_cmp_pd::<_CMP_GT_OQ>(back, exact),
+            _mm_cmp_pd::<_CMP_LT_OQ>(back, exact),
+        ));
+        // As 32-bit lanes 0 and 1: −1 (one float down) for tmin, +1 (one up) for tmax.
+        let step = _mm_sign_epi32(
+            _mm_shuffle_epi32::<0b10_10_10_00>(step),
+            _mm_setr_epi32(1, -1, 0, 0),
+        );
+        // `ordered` of crate::bvh, lane by lane: float bits as integers in float order.
+        let ordered = |bits: __m128i| {
+            _mm_xor_si128(
+                bits,
+                _mm_and_si128(_mm_srai_epi32::<31>(bits), _mm_set1_epi32(i32::MAX)),
+            )
+        };
+        let stepped = ordered(_mm_add_epi32(ordered(_mm_castps_si128(rounded)), step));
+        let lanes = lanes4(_mm_castsi128_ps(stepped));
+        [lanes[0], lanes[1]]
+    }
+}
+
 /// A ray's constants for the node and block tests, broadcast from [`ray_constants`].
 ///
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
 unsafe fn lanes(ray: &TriangleRay) -> Lanes {
-    let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
-    let negative = ray.direction.map(|d| usize::from(d.is_sign_negative()));
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
         let RayConstants {
@@ -205,6 +307,9 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
             };
         }
         let [ox, oy, oz] = ray.origin;
+        let [dx, dy, dz] = ray.direction;
+        let octant = _mm_movemask_ps(_mm_setr_ps(dx, dy, dz, 0.0)) as usize;
+        let [near, far] = &PLANE_OFFSETS[octant];
         Lanes {
             origin: [_mm256_set1_ps(ox), _mm256_set1_ps(oy), _mm256_set1_ps(oz)],
             inv_dir: [splat8!(inv, 0), splat8!(inv, 1), splat8!(inv, 2)],
@@ -213,8 +318,8 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
                 splat8!(inv_far, 1),
                 splat8!(inv_far, 2),
             ],
-            near: [0, 1, 2].map(|a| offset(negative[a], a)),
-            far: [0, 1, 2].map(|a| offset(1 - negative[a], a)),
+            near,
+            far,
             tmin8: _mm256_set1_ps(ray.tmin),
             tri: TriLanes {
                 kx,
@@ -284,7 +389,7 @@ unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) 
 macro_rules! watertight_test {
     ($r:expr, $vertex:expr, $tmax:expr, $exact_edges:expr,
      $zero:ident, $sub:ident, $mul:ident, $add:ident, $div:ident, $and:ident, $or:ident,
-     $andnot:ident, $cmp:ident, $movemask:ident) => {{
+     $min:ident, $max:ident, $cmp:ident, $movemask:ident) => {{
         let r = $r;
         let vertex = $vertex;
         let relative = |v: usize, axis: usize| $sub(vertex(v, axis), r.origin[axis]);
@@ -307,16 +412,15 @@ macro_rules! watertight_test {
             (u, v, w) = $exact_edges(on_edge, [ax, ay, bx, by, cx, cy], (u, v, w));
         }
 
-        let negative = $or(
-            $cmp::<_CMP_LT_OS>(u, zero),
-            $or($cmp::<_CMP_LT_OS>(v, zero), $cmp::<_CMP_LT_OS>(w, zero)),
-        );
-        let positive = $or(
-            $cmp::<_CMP_GT_OS>(u, zero),
-            $or($cmp::<_CMP_GT_OS>(v, zero), $cmp::<_CMP_GT_OS>(w, zero)),
-        );
+        // Not some edge function negative and another positive: the least is not below
+        // zero or the greatest not above. (Where one is NaN, so are `det` and `t`, and the
+        // lane misses in the range test whatever is decided here.)
         let det = $add($add(u, v), w);
-        let inside = $andnot($and(negative, positive), $cmp::<_CMP_NEQ_UQ>(det, zero));
+        let same_side = $or(
+            $cmp::<_CMP_GE_OQ>($min(u, $min(v, w)), zero),
+            $cmp::<_CMP_LE_OQ>($max(u, $max(v, w)), zero),
+        );
+        let inside = $and(same_side, $cmp::<_CMP_NEQ_UQ>(det, zero));
         // Most lanes miss: their division is skipped.
         if $movemask(inside) == 0 {
             (
@@ -360,7 +464,7 @@ pub(crate) unsafe fn block_test(
         let vertex = |v: usize, axis: usize| _mm_load_ps(block.v[v][axis].as_ptr());
         watertight_test! { r, vertex, tmax, exact_edges,
         _mm_setzero_ps, _mm_sub_ps, _mm_mul_ps, _mm_add_ps, _mm_div_ps, _mm_and_ps, _mm_or_ps,
-        _mm_andnot_ps, _mm_cmp_ps, _mm_movemask_ps }
+        _mm_min_ps, _mm_max_ps, _mm_cmp_ps, _mm_movemask_ps }
     }
 }
 
@@ -382,7 +486,7 @@ pub(crate) unsafe fn row_test(
         let vertex = |v: usize, axis: usize| _mm256_broadcast_ss(&block.v[v][axis][lane]);
         watertight_test! { r, vertex, tmax, exact_edges8,
         _mm256_setzero_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps, _mm256_div_ps,
-        _mm256_and_ps, _mm256_or_ps, _mm256_andnot_ps, _mm256_cmp_ps, _mm256_movemask_ps }
+        _mm256_and_ps, _mm256_or_ps, _mm256_min_ps, _mm256_max_ps, _mm256_cmp_ps, _mm256_movemask_ps }
     }
 }
 
@@ -575,7 +679,8 @@ pub unsafe fn closest(
     }
     // Rounded here rather than by the caller: passed in, the float32 ray would be stored
     // field by field and reloaded whole, stalling every ray on store forwarding.
-    let ray = TriangleRay::new(ray, tmax);
+    // SAFETY: AVX2 is enabled in this function.
+    let ray = unsafe { triangle_ray(ray, tmax) };
     let mut nearest = Nearest::before(ray.tmax);
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
     if !unsafe { enters(&bvh.bounds(), &ray, nearest.horizon()) } {
@@ -627,12 +732,7 @@ pub unsafe fn closest(
             while m != 0 {
                 let i = m.trailing_zeros() as usize;
                 m &= m - 1;
-                push_sorted(
-                    &mut stack,
-                    base,
-                    &mut sp,
-                    pack(entry(i), node.children[i]),
-                );
+                push_sorted(&mut stack, base, &mut sp, pack(entry(i), node.children[i]));
             }
             sp -= 1;
             // SAFETY: written above.
@@ -730,7 +830,8 @@ pub unsafe fn any(
     if nodes.is_empty() {
         return false;
     }
-    let ray = TriangleRay::new(ray, ray.tmax);
+    // SAFETY: AVX2 is enabled in this function.
+    let ray = unsafe { triangle_ray(ray, ray.tmax) };
     // Boxes are entered up to the horizon past tmax: a triangle's computed distance can
     // round below its box's computed entry distance ([`crate::triangle::SEARCH_MARGIN`]).
     let horizon = Nearest::before(ray.tmax).horizon();
@@ -925,4 +1026,59 @@ pub unsafe fn wide_any(
     // SAFETY (for the helpers): AVX2 is enabled in this function.
     let r = unsafe { wide_lanes(ray) };
     bvh.any_by(|node| unsafe { wide_node_test(node, &r, tmax) }.0, leaf)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bvh::{f32_at_least, f32_at_most};
+    use crate::test_random::XorShift;
+
+    #[test]
+    fn intervals_round_outward_bit_for_bit_as_the_scalar_functions() {
+        if !available() {
+            return;
+        }
+        let mut random = XorShift::new(7);
+        let special = [
+            0.0,
+            -0.0,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            1e-4,
+            f64::from(f32::MAX),
+            f64::from(f32::MAX) * (1.0 + 1e-12),
+            -f64::from(f32::MAX) * (1.0 + 1e-12),
+            f64::from(f32::MIN_POSITIVE) / 3.0,
+            -1e-50,
+            1e-50,
+            f64::MAX,
+            0.1,
+            -0.1,
+        ];
+        let random_values = (0..20_000).map(|_| {
+            // Any bit pattern: every exponent, sign and NaN payload.
+            f64::from_bits(random.next_u64())
+        });
+        let scaled = (0..20_000).map(|i| (XorShift::new(i).unit_f64() - 0.5) * 1e3);
+        let values: Vec<f64> = special
+            .into_iter()
+            .chain(random_values)
+            .chain(scaled)
+            .collect();
+        for pair in values.windows(2) {
+            let (tmin, tmax) = (pair[0], pair[1]);
+            // SAFETY: AVX2 is available (checked above).
+            let [lo, hi] = unsafe { interval_avx2(tmin, tmax) };
+            assert_eq!(lo.to_bits(), f32_at_most(tmin).to_bits(), "tmin {tmin:e}");
+            assert_eq!(hi.to_bits(), f32_at_least(tmax).to_bits(), "tmax {tmax:e}");
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    unsafe fn interval_avx2(tmin: f64, tmax: f64) -> [f32; 2] {
+        // SAFETY: AVX2 is enabled in this function.
+        unsafe { interval_f32(tmin, tmax) }
+    }
 }
