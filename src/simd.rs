@@ -87,6 +87,7 @@ pub(crate) fn lanes4(x: __m128) -> [f32; 4] {
 /// A ray's division results, in registers: `inv` holds `1/d` (lanes 0–2), `inv_far` the
 /// same times [`EXIT_SCALE`](crate::bvh::Scalar::EXIT_SCALE), `shear` holds
 /// `d[kx]/d[kz], d[ky]/d[kz], 1/d[kz]` (lanes 0–2) for the axes `k = [kx, ky, kz]`.
+#[derive(Clone, Copy)]
 pub(crate) struct RayConstants {
     pub(crate) inv: __m128,
     pub(crate) inv_far: __m128,
@@ -165,23 +166,34 @@ static AXIS_ORDER: [[i32; 4]; 8] = {
     table
 };
 
+/// `1/d` of the ray's direction in lanes 0–2, the same division as [`ray_constants`]
+/// (bit-identical), alone.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn inverse([dx, dy, dz]: [f32; 3]) -> __m128 {
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe { _mm_div_ps(_mm_set1_ps(1.0), _mm_setr_ps(dx, dy, dz, 1.0)) }
+}
+
 /// Whether the ray enters `bounds` with `tmin <= t <= tmax`, by [`node_test`]'s arithmetic
 /// (the same reciprocals, products and NaN-ignoring order). For the tree's bounds this is
 /// conservative: they are the union of the root's slot boxes, and every operation is
 /// monotone in the planes, so a ray that enters some child of the root passes. It costs
 /// a rejected ray one division and a 4-lane test instead of the full set-up of its lanes.
+/// `inv` is `1/d` in lanes 0–2 (from [`inverse`] or [`ray_constants`]).
 ///
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn enters(bounds: &Bounds<f32>, ray: &TriangleRay, tmax: f32) -> bool {
+unsafe fn enters(bounds: &Bounds<f32>, ray: &TriangleRay, inv: __m128, tmax: f32) -> bool {
     let ([ox, oy, oz], [dx, dy, dz]) = (ray.origin, ray.direction);
     let (lo, hi) = (bounds.min, bounds.max);
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
         let d = _mm_setr_ps(dx, dy, dz, 1.0);
         let o = _mm_setr_ps(ox, oy, oz, 0.0);
-        let inv = _mm_div_ps(_mm_set1_ps(1.0), d);
         let inv_far = _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE));
         let lo = _mm_setr_ps(lo[0], lo[1], lo[2], 0.0);
         let hi = _mm_setr_ps(hi[0], hi[1], hi[2], 0.0);
@@ -281,34 +293,49 @@ unsafe fn interval_f32(tmin: f64, tmax: f64) -> [f32; 2] {
     }
 }
 
-/// A ray's constants for the node and block tests, broadcast from [`ray_constants`].
+/// A ray's constants for the block test, broadcast from [`ray_constants`].
 ///
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn lanes(ray: &TriangleRay) -> Lanes {
+unsafe fn triangle_lanes(ray: &TriangleRay, constants: &RayConstants) -> TriLanes<__m128> {
+    let [kx, ky, kz] = constants.k;
+    let shear = constants.shear;
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
-        let RayConstants {
-            inv,
-            inv_far,
-            shear,
-            k: [kx, ky, kz],
-        } = ray_constants(ray.direction);
-        // Macros, not closures: a closure would not inherit the caller's AVX2.
-        macro_rules! splat4 {
-            ($v:expr, $lane:literal) => {
-                _mm_permute_ps::<{ $lane * 0b01_01_01_01 }>($v)
-            };
+        TriLanes {
+            kx,
+            ky,
+            kz,
+            origin: ray.origin.map(|o| _mm_set1_ps(o)),
+            sx: _mm_permute_ps::<0b00_00_00_00>(shear),
+            sy: _mm_permute_ps::<0b01_01_01_01>(shear),
+            sz: _mm_permute_ps::<0b10_10_10_10>(shear),
+            tmin: _mm_set1_ps(ray.tmin),
         }
+    }
+}
+
+/// A ray's constants for the node and block tests, broadcast from [`ray_constants`];
+/// `tri` from [`triangle_lanes`].
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn lanes(ray: &TriangleRay, constants: &RayConstants, tri: TriLanes<__m128>) -> Lanes {
+    let RayConstants { inv, inv_far, .. } = *constants;
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        // A macro, not a closure: a closure would not inherit the caller's AVX2.
         macro_rules! splat8 {
-            ($v:expr, $lane:literal) => {
-                _mm256_set_m128(splat4!($v, $lane), splat4!($v, $lane))
-            };
+            ($v:expr, $lane:literal) => {{
+                let lane = _mm_permute_ps::<{ $lane * 0b01_01_01_01 }>($v);
+                _mm256_set_m128(lane, lane)
+            }};
         }
         let [ox, oy, oz] = ray.origin;
         let [dx, dy, dz] = ray.direction;
-        let octant = _mm_movemask_ps(_mm_setr_ps(dx, dy, dz, 0.0)) as usize;
+        let octant = _mm_movemask_ps(_mm_setr_ps(dx, dy, dz, 0.0)) as usize & 0b111;
         let [near, far] = &PLANE_OFFSETS[octant];
         Lanes {
             origin: [_mm256_set1_ps(ox), _mm256_set1_ps(oy), _mm256_set1_ps(oz)],
@@ -321,16 +348,7 @@ unsafe fn lanes(ray: &TriangleRay) -> Lanes {
             near,
             far,
             tmin8: _mm256_set1_ps(ray.tmin),
-            tri: TriLanes {
-                kx,
-                ky,
-                kz,
-                origin: [_mm_set1_ps(ox), _mm_set1_ps(oy), _mm_set1_ps(oz)],
-                sx: splat4!(shear, 0),
-                sy: splat4!(shear, 1),
-                sz: splat4!(shear, 2),
-                tmin: _mm_set1_ps(ray.tmin),
-            },
+            tri,
         }
     }
 }
@@ -683,10 +701,20 @@ pub unsafe fn closest(
     let ray = unsafe { triangle_ray(ray, tmax) };
     let mut nearest = Nearest::before(ray.tmax);
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
-    if !unsafe { enters(&bvh.bounds(), &ray, nearest.horizon()) } {
+    if !unsafe {
+        enters(
+            &bvh.bounds(),
+            &ray,
+            inverse(ray.direction),
+            nearest.horizon(),
+        )
+    } {
         return None;
     }
-    let r = unsafe { lanes(&ray) };
+    let r = unsafe {
+        let constants = ray_constants(ray.direction);
+        lanes(&ray, &constants, triangle_lanes(&ray, &constants))
+    };
     let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
     let mut sp = 0usize;
     let mut found = None;
@@ -830,24 +858,29 @@ pub unsafe fn any(
     if nodes.is_empty() {
         return false;
     }
-    // SAFETY: AVX2 is enabled in this function.
+    // SAFETY (for every helper called below): AVX2 is enabled in this function.
     let ray = unsafe { triangle_ray(ray, ray.tmax) };
+    let constants = unsafe { ray_constants(ray.direction) };
+    let tri = unsafe { triangle_lanes(&ray, &constants) };
+    // The hint's block first, before the tree's box and the node tests' set-up: a ray
+    // that hits it (on coherent rays, most rays after a hit) needs neither.
+    let hinted = hint.block().filter(|&b| b < blocks.len());
+    if let Some(b) = hinted
+        && let Some(slot) = unsafe { block_hit(blocks, b as u32, &tri, ray.tmax) }
+    {
+        hint.remember_triangle(Some(slot));
+        return true;
+    }
     // Boxes are entered up to the horizon past tmax: a triangle's computed distance can
     // round below its box's computed entry distance ([`crate::triangle::SEARCH_MARGIN`]).
     let horizon = Nearest::before(ray.tmax).horizon();
-    // SAFETY (for every helper called below): AVX2 is enabled in this function.
-    if !unsafe { enters(&bvh.bounds(), &ray, horizon) } {
+    if !unsafe { enters(&bvh.bounds(), &ray, constants.inv, horizon) } {
         hint.remember_triangle(None);
         return false;
     }
-    let r = unsafe { lanes(&ray) };
+    let r = unsafe { lanes(&ray, &constants, tri) };
     let found = 'search: {
-        if let Some(b) = hint.block()
-            && b < blocks.len()
-        {
-            if let Some(slot) = unsafe { block_hit(blocks, b as u32, &r, ray.tmax) } {
-                break 'search Some(slot);
-            }
+        if let Some(b) = hinted {
             let near = hint_roots[b];
             if near != 0
                 && let Some(slot) = unsafe { any_below(nodes, blocks, near, &r, horizon, ray.tmax) }
@@ -866,9 +899,14 @@ pub unsafe fn any(
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn block_hit(blocks: &[TriangleBlock], b: u32, r: &Lanes, tmax: f32) -> Option<u32> {
+unsafe fn block_hit(
+    blocks: &[TriangleBlock],
+    b: u32,
+    r: &TriLanes<__m128>,
+    tmax: f32,
+) -> Option<u32> {
     // SAFETY: AVX2 is enabled in the caller.
-    let mask = unsafe { block_test(&blocks[b as usize], &r.tri, _mm_set1_ps(tmax)) }.0;
+    let mask = unsafe { block_test(&blocks[b as usize], r, _mm_set1_ps(tmax)) }.0;
     (mask != 0).then(|| b * BLOCK as u32 + mask.trailing_zeros())
 }
 
@@ -895,7 +933,7 @@ unsafe fn any_below(
             let (first, count) = leaf_range(current);
             for b in first..first + count {
                 // SAFETY: AVX2 is enabled in the caller.
-                if let Some(slot) = unsafe { block_hit(blocks, b, r, tmax) } {
+                if let Some(slot) = unsafe { block_hit(blocks, b, &r.tri, tmax) } {
                     return Some(slot);
                 }
             }
