@@ -860,25 +860,38 @@ pub unsafe fn any(
     }
     // SAFETY (for every helper called below): AVX2 is enabled in this function.
     let ray = unsafe { triangle_ray(ray, ray.tmax) };
-    let constants = unsafe { ray_constants(ray.direction) };
-    let tri = unsafe { triangle_lanes(&ray, &constants) };
     // The hint's block first, before the tree's box and the node tests' set-up: a ray
-    // that hits it (on coherent rays, most rays after a hit) needs neither.
+    // that hits it (on coherent rays, most rays after a hit) needs neither. A ray without
+    // a hint (after a miss) tests the tree's box before its set-up, as closest hit does.
     let hinted = hint.block().filter(|&b| b < blocks.len());
-    if let Some(b) = hinted
-        && let Some(slot) = unsafe { block_hit(blocks, b as u32, &tri, ray.tmax) }
-    {
-        hint.remember_triangle(Some(slot));
-        return true;
-    }
+    let hinted_constants = match hinted {
+        Some(b) => {
+            let constants = unsafe { ray_constants(ray.direction) };
+            let tri = unsafe { triangle_lanes(&ray, &constants) };
+            if let Some(slot) = unsafe { block_hit(blocks, b as u32, &tri, ray.tmax) } {
+                hint.remember_triangle(Some(slot));
+                return true;
+            }
+            Some(constants)
+        }
+        None => None,
+    };
     // Boxes are entered up to the horizon past tmax: a triangle's computed distance can
     // round below its box's computed entry distance ([`crate::triangle::SEARCH_MARGIN`]).
     let horizon = Nearest::before(ray.tmax).horizon();
-    if !unsafe { enters(&bvh.bounds(), &ray, constants.inv, horizon) } {
+    let inv = match &hinted_constants {
+        Some(constants) => constants.inv,
+        None => unsafe { inverse(ray.direction) },
+    };
+    if !unsafe { enters(&bvh.bounds(), &ray, inv, horizon) } {
         hint.remember_triangle(None);
         return false;
     }
-    let r = unsafe { lanes(&ray, &constants, tri) };
+    let constants = match hinted_constants {
+        Some(constants) => constants,
+        None => unsafe { ray_constants(ray.direction) },
+    };
+    let r = unsafe { lanes(&ray, &constants, triangle_lanes(&ray, &constants)) };
     let found = 'search: {
         if let Some(b) = hinted {
             let near = hint_roots[b];
