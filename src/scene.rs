@@ -990,7 +990,7 @@ impl TriangleRay {
 
     /// The ray with its interval `(tmin, tmax)` already rounded outward to float32.
     #[inline(always)]
-    fn rounded(ray: &Ray, (tmin, tmax): (f32, f32)) -> TriangleRay {
+    pub(crate) fn rounded(ray: &Ray, (tmin, tmax): (f32, f32)) -> TriangleRay {
         TriangleRay {
             origin: ray.origin.as_vec3().to_array(),
             direction: ray.direction.as_vec3().to_array(),

@@ -250,12 +250,7 @@ static PLANE_OFFSETS: [[[usize; 3]; 2]; 8] = {
 unsafe fn triangle_ray(ray: &Ray, tmax: f64) -> TriangleRay {
     // SAFETY: AVX2 is enabled in the caller.
     let [tmin, tmax] = unsafe { interval_f32(ray.tmin, tmax) };
-    TriangleRay {
-        origin: ray.origin.as_vec3().to_array(),
-        direction: ray.direction.as_vec3().to_array(),
-        tmin,
-        tmax,
-    }
+    TriangleRay::rounded(ray, (tmin, tmax))
 }
 
 /// `[f32_at_most(tmin), f32_at_least(tmax)]`, computed side by side.
