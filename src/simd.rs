@@ -736,10 +736,9 @@ pub unsafe fn closest(
             if rest == 0 {
                 continue;
             }
-            let entry = |i: usize| unsafe { lane8(enter, i) };
             let second = rest.trailing_zeros() as usize;
-            let a = pack(entry(first), current);
-            let b = pack(entry(second), node.children[second]);
+            let a = pack(unsafe { lane8(enter, first) }, current);
+            let b = pack(unsafe { lane8(enter, second) }, node.children[second]);
             if rest & (rest - 1) == 0 {
                 // Two children: visit the nearer, push the farther.
                 let (near, far) = if a <= b { (a, b) } else { (b, a) };
@@ -755,7 +754,8 @@ pub unsafe fn closest(
             while m != 0 {
                 let i = m.trailing_zeros() as usize;
                 m &= m - 1;
-                push_sorted(&mut stack, base, &mut sp, pack(entry(i), node.children[i]));
+                let entry = pack(unsafe { lane8(enter, i) }, node.children[i]);
+                push_sorted(&mut stack, base, &mut sp, entry);
             }
             sp -= 1;
             // SAFETY: written above.
