@@ -678,12 +678,14 @@ impl Scene {
     /// is the same with any hint.
     #[inline]
     pub fn any_hit_hinted(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        self.any_analytic(ray, hint)
+        (self.has_analytic() && self.any_analytic(ray, hint))
             || (!self.triangles.bvh.is_empty() && self.any_triangle(ray, hint))
     }
 
-    /// Whether a plane or a sphere is hit, the hint's sphere tested first.
-    #[inline(always)]
+    /// Whether a plane or a sphere is hit, the hint's sphere tested first. Out of line
+    /// and skipped when there are neither: inlined, the spheres' search made every query
+    /// set up its large stack frame, triangles only or not (about 40 instructions a ray).
+    #[inline(never)]
     fn any_analytic(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         self.any_plane(ray) || self.any_sphere(ray, hint)
     }
@@ -775,6 +777,13 @@ impl Scene {
                 )
             };
         }
+        self.any_triangle_scalar(ray, hint)
+    }
+
+    /// [`Scene::any_triangle`] without AVX2. Out of line, as [`Scene::any_analytic`].
+    #[inline(never)]
+    fn any_triangle_scalar(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
+        let blocks = &self.triangles.blocks;
         let r = TriangleRay::new(ray, ray.tmax);
         let (sheared, boxes) = (r.sheared(), r.boxes());
         // Boxes up to the horizon past tmax, as in the AVX2 path.
