@@ -1126,21 +1126,23 @@ fn build_triangles(
 }
 
 fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u32>, Bvh<f64>) {
-    let boxes: Vec<Aabb> = spheres
-        .iter()
-        .map(|s| {
-            // Rounded outward: the true surface reaches exactly c ± r.
-            let c = s.center.to_array();
-            bvh::outward_f32(
-                c.map(|x| (x - s.radius).next_down()),
-                c.map(|x| (x + s.radius).next_up()),
-            )
-        })
-        .collect();
+    let box_of = |i: usize| {
+        // Rounded outward: the true surface reaches exactly c ± r.
+        let s = &spheres[i];
+        let c = s.center.to_array();
+        bvh::outward_f32(
+            c.map(|x| (x - s.radius).next_down()),
+            c.map(|x| (x + s.radius).next_up()),
+        )
+    };
     let params = preset.params(SPHERES_PER_LEAF);
-    let (tree, ids) = Bvh::build(&boxes, params, LeafCost::ONE_BY_ONE, |first, count| {
-        (first, count)
-    });
+    let (tree, ids) = Bvh::build_from(
+        spheres.len(),
+        box_of,
+        params,
+        LeafCost::ONE_BY_ONE,
+        |first, count| (first, count),
+    );
     let order = ids.iter().map(|&p| spheres[p as usize]).collect();
     (order, ids, tree)
 }
