@@ -778,6 +778,9 @@ impl<T: Scalar> Part<T> {
         level: usize,
         mut defer: impl FnMut(usize, usize, usize) -> bool,
     ) {
+        // Every primitive under `root` lands here, or (the top part's deferred ones) is
+        // appended here later: one allocation instead of doublings and copies.
+        self.order.reserve(collapse.primitives(root) as usize);
         self.nodes.push(Node::empty());
         let mut pending = vec![(root, 0usize, level)]; // (binary node, wide node, depth)
         let (mut children, mut walk) = (Vec::new(), Vec::new());
