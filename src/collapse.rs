@@ -15,6 +15,7 @@
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
 use obvhs::bvh2::Bvh2;
+use rayon::prelude::*;
 
 /// Slots of a wide node.
 const SLOTS: usize = 8;
@@ -52,6 +53,9 @@ impl LeafCost {
         area * self.per_group * groups
     }
 }
+
+/// Entries of the choice arrays one task fills at least.
+const PARALLEL_FILL: usize = 1 << 14;
 
 /// Levels of the binary tree below which subtrees are costed in parallel.
 const PARALLEL_LEVELS: u32 = 10;
@@ -110,8 +114,18 @@ impl<'a> Collapse<'a> {
     /// leaf is never split, and a subtree becomes a leaf only if it holds at most
     /// `max_leaf` primitives), leaves costing `leaf_cost`.
     pub fn new(bvh2: &'a Bvh2, max_leaf: u32, leaf_cost: LeafCost) -> Collapse<'a> {
-        let choices = (0..bvh2.nodes.len()).map(|_| AtomicU64::new(0)).collect();
-        let primitives = (0..bvh2.nodes.len()).map(|_| AtomicU32::new(0)).collect();
+        // Filled in parallel: first touching their pages is most of the cost.
+        let len = bvh2.nodes.len();
+        let choices = (0..len)
+            .into_par_iter()
+            .with_min_len(PARALLEL_FILL)
+            .map(|_| AtomicU64::new(0))
+            .collect();
+        let primitives = (0..len)
+            .into_par_iter()
+            .with_min_len(PARALLEL_FILL)
+            .map(|_| AtomicU32::new(0))
+            .collect();
         let collapse = Collapse {
             bvh2,
             max_leaf,
