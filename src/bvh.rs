@@ -702,11 +702,10 @@ fn ploc(count: usize, box_of: impl Fn(usize) -> Aabb + Sync, params: &BvhBuildPa
     use obvhs::bvh2::node::Bvh2Node;
     use obvhs::ploc::{PlocBuilder, PlocSearchDistance, SortPrecision};
 
-    let mut bvh2 = Bvh2::zeroed(count);
-    // obvhs writes the nodes, and sizes and fills its work arrays, one thread at a time;
-    // first touching a page costs the kernel more than writing it, so the pages are
-    // touched here in parallel instead (the values are obvhs' own starting ones: zeros).
-    // A million triangles touch about 112 MB here.
+    // `Bvh2::zeroed(count)`, but with its arrays made here. obvhs writes the nodes, and
+    // sizes and fills its work arrays, one thread at a time; first touching a page costs
+    // the kernel more than writing it, so the pages are touched here in parallel instead
+    // (with obvhs' own starting values: zeros). A million triangles touch about 112 MB.
     let zeros = |len: usize| -> Vec<Bvh2Node> {
         (0..len)
             .into_par_iter()
@@ -714,10 +713,12 @@ fn ploc(count: usize, box_of: impl Fn(usize) -> Aabb + Sync, params: &BvhBuildPa
             .map(|_| Bvh2Node::default())
             .collect()
     };
-    bvh2.nodes = zeros(bvh2.nodes.len());
-    (bvh2.primitive_indices.par_iter_mut().enumerate())
+    let mut bvh2 = Bvh2::zeroed(0);
+    bvh2.nodes = zeros((2 * count).saturating_sub(1));
+    bvh2.primitive_indices = (0..count as u32)
+        .into_par_iter()
         .with_min_len(PARALLEL_LEAVES)
-        .for_each(|(i, index)| *index = i as u32);
+        .collect();
     let leaves: Vec<Bvh2Node> = (0..count)
         .into_par_iter()
         .with_min_len(PARALLEL_LEAVES)
