@@ -20,9 +20,9 @@ use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
     STACK, TriLanes, block_test, distance, lanes4, lanes8, pack, prefetch_child, push_sorted,
-    ray_constants, row_test, slab_test, tri_lanes,
+    row_constants, row_test, slab_test,
 };
-use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
+use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
 pub const PACKET: usize = 64;
@@ -266,64 +266,39 @@ unsafe fn trace<const ANY: bool>(
     let mut shear_rows = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
     let mut t_tri = Rows::ZERO;
     let mut axes = [[0usize; 3]; PACKET];
-    let mut sheared = [MaybeUninit::<ShearedRay>::uninit(); PACKET];
     let mut nearest = [Nearest::before(f32::NEG_INFINITY); PACKET];
-    // The largest horizon over the rays still searching.
-    let mut packet_tmax = packet.horizon;
-    // Each ray's division results in registers (one 8-lane division, as for a single
-    // ray), written out lane by lane: rereading values stored field by field would stall.
-    let mut values = (
-        [0f32; 4],
-        [0f32; 4],
-        [0f32; 4],
-        0f32,
-        [0f32; 4],
-        [0usize; 3],
-    );
-    for k in 0..PACKET {
-        let (r, l) = (k / 8, k % 8);
-        if k < n {
-            let ray = &rays[k];
-            // SAFETY: AVX2 is enabled in this function.
-            let c = unsafe { ray_constants(ray.direction) };
-            let [ox, oy, oz] = ray.origin;
-            let shear = lanes4(c.shear);
-            values = (
-                [ox, oy, oz, 0.0],
-                lanes4(c.inv),
-                lanes4(c.inv_far),
-                ray.tmin,
-                shear,
-                c.k,
-            );
-            nearest[k] = Nearest::before(ray.tmax);
-            let [kx, ky, kz] = c.k;
-            sheared[k].write(ShearedRay {
-                origin: ray.origin,
-                kx,
-                ky,
-                kz,
-                sx: shear[0],
-                sy: shear[1],
-                sz: shear[2],
-            });
-        }
-        // Lanes past `n` repeat the last ray.
-        for a in 0..3 {
-            origin[a].0[r][l] = values.0[a];
-            inv[a].0[r][l] = values.1[a];
-            inv_far[a].0[r][l] = values.2[a];
-            shear_rows[a].0[r][l] = values.4[a];
-        }
-        tmin.0[r][l] = values.3;
-        t_box.0[r][l] = nearest[k].horizon();
-        t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
-        axes[k] = values.5;
-    }
     // The rows whose rays share their axes `k` (as camera rays nearly always do), which
     // the row test needs.
-    let shared_axes: [bool; ROWS] =
-        std::array::from_fn(|r| axes[r * 8..r * 8 + 8].iter().all(|&k| k == axes[r * 8]));
+    let mut shared_axes = [false; ROWS];
+    // The largest horizon over the rays still searching.
+    let mut packet_tmax = packet.horizon;
+    // Each row's set-up at once, a ray per lane: the divisions and choices of
+    // `simd::ray_constants`, the same IEEE operations lane by lane (so bit-identical).
+    for r in 0..ROWS {
+        // SAFETY: AVX2 is enabled in this function.
+        let row = unsafe { row_constants(std::array::from_fn(|l| &rays[(r * 8 + l).min(n - 1)])) };
+        let store = |rows: &mut Rows, x: __m256| {
+            // SAFETY: rows are 32-byte aligned arrays of eight floats.
+            unsafe { _mm256_store_ps(rows.0[r].as_mut_ptr(), x) }
+        };
+        for a in 0..3 {
+            store(&mut origin[a], row.origin[a]);
+            store(&mut inv[a], row.inv[a]);
+            store(&mut inv_far[a], row.inv_far[a]);
+            store(&mut shear_rows[a], row.shear[a]);
+        }
+        store(&mut tmin, row.tmin);
+        for l in 0..8 {
+            let k = r * 8 + l;
+            axes[k] = row.axes(l);
+            if k < n {
+                nearest[k] = Nearest::before(rays[k].tmax);
+            }
+            t_box.0[r][l] = nearest[k].horizon();
+            t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
+        }
+        shared_axes[r] = axes[r * 8..r * 8 + 8].iter().all(|&k| k == axes[r * 8]);
+    }
     let nodes = bvh.nodes();
     if nodes.is_empty() {
         return Some(visits);
@@ -455,7 +430,18 @@ unsafe fn trace<const ANY: bool>(
                     hits &= hits - 1;
                     // SAFETY: ray `k` is live (only live lanes enter boxes), so it was
                     // written above; AVX2 is enabled in this function.
-                    let tri = unsafe { tri_lanes(sheared[k].assume_init_ref(), tmin.0[r][k % 8]) };
+                    let l = k % 8;
+                    let [kx, ky, kz] = axes[k];
+                    let tri = TriLanes {
+                        kx,
+                        ky,
+                        kz,
+                        origin: [0, 1, 2].map(|a| _mm_set1_ps(origin[a].0[r][l])),
+                        sx: _mm_set1_ps(shear_rows[0].0[r][l]),
+                        sy: _mm_set1_ps(shear_rows[1].0[r][l]),
+                        sz: _mm_set1_ps(shear_rows[2].0[r][l]),
+                        tmin: _mm_set1_ps(tmin.0[r][l]),
+                    };
                     for b in first..first + count {
                         let limit = _mm_set1_ps(t_triangle::<ANY>(nearest[k]));
                         // SAFETY: AVX2 is enabled in this function.

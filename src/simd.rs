@@ -15,7 +15,7 @@ use crate::bvh::{Bounds, BoxRay, Bvh, ChildRef, LEAF, Node, WIDTH, leaf_range};
 use crate::hint::AnyHitHint;
 use crate::ray::Ray;
 use crate::scene::TriangleRay;
-use crate::triangle::{BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit, edge_functions_f64};
+use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit, edge_functions_f64};
 
 /// Stack entries of the AVX2 traversals; trees that may need more use the scalar path.
 pub const STACK: usize = 256;
@@ -50,25 +50,6 @@ pub(crate) struct TriLanes<V> {
     pub(crate) sy: V,
     pub(crate) sz: V,
     pub(crate) tmin: V,
-}
-
-/// # Safety
-/// Only from a function with AVX2 enabled.
-#[inline(always)]
-pub(crate) unsafe fn tri_lanes(sheared: &ShearedRay, tmin: f32) -> TriLanes<__m128> {
-    // SAFETY: AVX2 is enabled in the caller.
-    unsafe {
-        TriLanes {
-            kx: sheared.kx,
-            ky: sheared.ky,
-            kz: sheared.kz,
-            origin: sheared.origin.map(|o| _mm_set1_ps(o)),
-            sx: _mm_set1_ps(sheared.sx),
-            sy: _mm_set1_ps(sheared.sy),
-            sz: _mm_set1_ps(sheared.sz),
-            tmin: _mm_set1_ps(tmin),
-        }
-    }
 }
 
 /// The four lanes of `x`.
@@ -134,7 +115,98 @@ pub(crate) unsafe fn ray_constants([dx, dy, dz]: [f32; 3]) -> RayConstants {
     }
 }
 
-/// The watertight test's axes `[kx, ky, kz]` as [`ShearedRay::new`] chooses them, for each
+/// Eight rays' constants, a ray per lane: what [`ray_constants`] gives each of them, with
+/// origin and `tmin`.
+pub(crate) struct RowConstants {
+    pub(crate) origin: [__m256; 3],
+    pub(crate) tmin: __m256,
+    pub(crate) inv: [__m256; 3],
+    pub(crate) inv_far: [__m256; 3],
+    /// `d[kx]/d[kz]`, `d[ky]/d[kz]`, `1/d[kz]`, each lane with its own ray's axes.
+    pub(crate) shear: [__m256; 3],
+    /// Masks of the lanes where `|dx| > |dy|`, `|dx| > |dz|` and `|dy| > |dz|`.
+    comparisons: [u32; 3],
+}
+
+impl RowConstants {
+    /// The axes `[kx, ky, kz]` of the ray in lane `lane`.
+    #[inline(always)]
+    pub(crate) fn axes(&self, lane: usize) -> [usize; 3] {
+        let [xy, xz, yz] = self.comparisons.map(|mask| (mask as usize >> lane) & 1);
+        AXES[xy | xz << 1 | yz << 2]
+    }
+}
+
+/// [`ray_constants`] of eight rays at once, with the same IEEE divisions and products lane
+/// by lane (so bit-identical): the rays are transposed into a register per component, and
+/// each lane's axes are chosen by selects instead of a table.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+pub(crate) unsafe fn row_constants(rays: [&TriangleRay; 8]) -> RowConstants {
+    // SAFETY: AVX2 is enabled in the caller; a `TriangleRay` is eight floats (`repr(C)`).
+    unsafe {
+        let load = |ray: &TriangleRay| _mm256_loadu_ps((ray as *const TriangleRay).cast());
+        let [r0, r1, r2, r3, r4, r5, r6, r7] = rays.map(load);
+        // An 8 × 8 transpose: component `c` of ray `l` to lane `l` of `c`.
+        let (t0, t1) = (_mm256_unpacklo_ps(r0, r1), _mm256_unpackhi_ps(r0, r1));
+        let (t2, t3) = (_mm256_unpacklo_ps(r2, r3), _mm256_unpackhi_ps(r2, r3));
+        let (t4, t5) = (_mm256_unpacklo_ps(r4, r5), _mm256_unpackhi_ps(r4, r5));
+        let (t6, t7) = (_mm256_unpacklo_ps(r6, r7), _mm256_unpackhi_ps(r6, r7));
+        let u0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let u1 = _mm256_shuffle_ps::<0xee>(t0, t2);
+        let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let u3 = _mm256_shuffle_ps::<0xee>(t1, t3);
+        let u4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let u5 = _mm256_shuffle_ps::<0xee>(t4, t6);
+        let u6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let u7 = _mm256_shuffle_ps::<0xee>(t5, t7);
+        let [ox, oy, oz, dx, dy, dz, tmin] = [
+            _mm256_permute2f128_ps::<0x20>(u0, u4),
+            _mm256_permute2f128_ps::<0x20>(u1, u5),
+            _mm256_permute2f128_ps::<0x20>(u2, u6),
+            _mm256_permute2f128_ps::<0x20>(u3, u7),
+            _mm256_permute2f128_ps::<0x31>(u0, u4),
+            _mm256_permute2f128_ps::<0x31>(u1, u5),
+            _mm256_permute2f128_ps::<0x31>(u2, u6),
+        ];
+        let one = _mm256_set1_ps(1.0);
+        let inv = [dx, dy, dz].map(|d| _mm256_div_ps(one, d));
+        let exit_scale = _mm256_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE);
+        // The comparisons of `ray_constants` (false with a NaN), and from them, as its
+        // table [`AXES`] has it: `kz` is x where |dx| > |dy| and |dx| > |dz|, y where
+        // |dy| >= |dx| and |dy| > |dz|, z elsewhere; `kx` and `ky` follow it cyclically.
+        let abs = |d: __m256| _mm256_andnot_ps(_mm256_set1_ps(-0.0), d);
+        let (ax, ay, az) = (abs(dx), abs(dy), abs(dz));
+        let xy = _mm256_cmp_ps::<_CMP_GT_OQ>(ax, ay);
+        let xz = _mm256_cmp_ps::<_CMP_GT_OQ>(ax, az);
+        let yz = _mm256_cmp_ps::<_CMP_GT_OQ>(ay, az);
+        let kz_x = _mm256_and_ps(xy, xz);
+        let kz_y = _mm256_andnot_ps(xy, yz);
+        // `pick(z, x, y)`: the first where `kz` is z, the second where x, the third where y.
+        let pick = |z: __m256, x: __m256, y: __m256| {
+            _mm256_blendv_ps(_mm256_blendv_ps(z, x, kz_x), y, kz_y)
+        };
+        let d_kz = pick(dz, dx, dy);
+        let d_kx = pick(dx, dy, dz);
+        let d_ky = pick(dy, dz, dx);
+        RowConstants {
+            origin: [ox, oy, oz],
+            tmin,
+            inv,
+            inv_far: inv.map(|i| _mm256_mul_ps(i, exit_scale)),
+            shear: [
+                _mm256_div_ps(d_kx, d_kz),
+                _mm256_div_ps(d_ky, d_kz),
+                _mm256_div_ps(one, d_kz),
+            ],
+            comparisons: [xy, xz, yz].map(|m| _mm256_movemask_ps(m) as u32),
+        }
+    }
+}
+
+/// The watertight test's axes `[kx, ky, kz]` as [`ShearedRay::new`](crate::triangle::ShearedRay::new) chooses them, for each
 /// outcome of its comparisons: bit 0 `|dx| > |dy|`, bit 1 `|dx| > |dz|`, bit 2 `|dy| > |dz|`.
 static AXES: [[usize; 3]; 8] = {
     let mut table = [[0; 3]; 8];
@@ -1120,6 +1192,70 @@ mod tests {
             assert_eq!(lo.to_bits(), f32_at_most(tmin).to_bits(), "tmin {tmin:e}");
             assert_eq!(hi.to_bits(), f32_at_least(tmax).to_bits(), "tmax {tmax:e}");
         }
+    }
+
+    #[test]
+    fn row_constants_match_the_scalar_set_up_lane_by_lane() {
+        use crate::bvh::BoxRay;
+        use crate::triangle::ShearedRay;
+        if !available() {
+            return;
+        }
+        // Components that take every branch of the axis choice: zeros of both signs,
+        // ties of magnitude with either sign, tiny and huge values, NaN, and random ones.
+        let special = [
+            0.0,
+            -0.0,
+            1.0,
+            -1.0,
+            0.5,
+            -0.5,
+            1e-30,
+            -1e-30,
+            3e38,
+            f32::NAN,
+        ];
+        let mut random = XorShift::new(11);
+        let pick = |random: &mut XorShift| {
+            if random.below(3) == 0 {
+                special[random.below(special.len() as u64) as usize]
+            } else {
+                random.unit_f32() * 2.0 - 1.0
+            }
+        };
+        for _ in 0..5_000 {
+            let rays: [TriangleRay; 8] = std::array::from_fn(|_| TriangleRay {
+                origin: [0; 3].map(|_| random.unit_f32() * 8.0 - 4.0),
+                direction: [0; 3].map(|_| pick(&mut random)),
+                tmin: random.unit_f32(),
+                tmax: random.unit_f32() + 1.0,
+            });
+            // SAFETY: AVX2 is available (checked above).
+            let row = unsafe { row_avx2(&rays) };
+            for (l, ray) in rays.iter().enumerate() {
+                let at = |x: __m256| unsafe { lanes8(x) }[l].to_bits();
+                let sheared = ShearedRay::new(ray.origin.into(), ray.direction.into());
+                let boxes = BoxRay::new(ray.origin, ray.direction, ray.tmin);
+                let why = format!("lane {l} of {rays:?}");
+                assert_eq!(row.axes(l), [sheared.kx, sheared.ky, sheared.kz], "{why}");
+                let shear = [sheared.sx, sheared.sy, sheared.sz].map(f32::to_bits);
+                assert_eq!(row.shear.map(at), shear, "{why}");
+                assert_eq!(row.inv.map(at), boxes.inv_dir.map(f32::to_bits), "{why}");
+                assert_eq!(
+                    row.inv_far.map(at),
+                    boxes.inv_dir_far.map(f32::to_bits),
+                    "{why}"
+                );
+                assert_eq!(row.origin.map(at), ray.origin.map(f32::to_bits), "{why}");
+                assert_eq!(at(row.tmin), ray.tmin.to_bits(), "{why}");
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    unsafe fn row_avx2(rays: &[TriangleRay; 8]) -> RowConstants {
+        // SAFETY: AVX2 is enabled in this function.
+        unsafe { row_constants(std::array::from_fn(|l| &rays[l])) }
     }
 
     #[target_feature(enable = "avx2")]
