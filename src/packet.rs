@@ -428,8 +428,7 @@ unsafe fn trace<const ANY: bool>(
                 while hits != 0 {
                     let k = r * 8 + hits.trailing_zeros() as usize;
                     hits &= hits - 1;
-                    // SAFETY: ray `k` is live (only live lanes enter boxes), so it was
-                    // written above; AVX2 is enabled in this function.
+                    // Ray `k`'s constants in every lane of a block test, from its rows.
                     let l = k % 8;
                     let [kx, ky, kz] = axes[k];
                     let tri = TriLanes {
