@@ -471,6 +471,26 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
 
     let mut spheres = Vec::new();
     for (i, s) in raw.spheres.unwrap_or_default().into_iter().enumerate() {
+        // A valid sphere is taken without spelling out its keys, which only an error
+        // needs (a manifest may list a hundred thousand spheres); anything else goes
+        // through the checks below, which name the failing key.
+        let in_range = |x: f64| x.is_finite() && x.abs() <= MAX_MAGNITUDE;
+        let known = match &s.material {
+            None => Some(None),
+            Some(name) => material_ids.get(name.as_str()).map(|&id| Some(id)),
+        };
+        if let Some(material) = known
+            && s.center.iter().all(|&x| in_range(x))
+            && in_range(s.radius)
+            && s.radius > 0.0
+        {
+            spheres.push(SphereDesc {
+                center: DVec3::from_array(s.center),
+                radius: s.radius,
+                material,
+            });
+            continue;
+        }
         let key = |field: &str| format!("spheres[{i}].{field}");
         let center = point(&key("center"), s.center)?;
         let radius = finite(&key("radius"), s.radius)?;
