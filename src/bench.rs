@@ -1,9 +1,9 @@
 //! Benchmarks users can run (`raybatch bench`): trace throughput, build and load times,
 //! memory, and whole jobs, on scenes made here (and the scanned models when given). With
 //! the `embree` feature the very same rays go through the Embree reference (robust scene,
-//! `rtcIntersect1`/`rtcOccluded1`) in the same run, and ratios are reported; the torus's
-//! whole job (read, build, render, write) also runs through the Embree backend, in turns
-//! with ours.
+//! `rtcIntersect1`/`rtcOccluded1`) in the same run, and ratios are reported; the whole
+//! jobs (read, build, render, write) of the torus and of a manifest listing 100,000
+//! spheres also run through the Embree backend, in turns with ours.
 //!
 //! Every figure is the median of several runs. Trace passes run in rounds, every query of
 //! both tracers once per round, so that a slow spell of the machine lands on all columns
@@ -195,6 +195,10 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
     }
     if wanted("canonical") {
         jobs.push(canonical_job(temp)?);
+    }
+    if wanted("spheres") {
+        let count = if options.quick { 10_000 } else { 100_000 };
+        jobs.push(sphere_job(temp, count, (width, height), options.embree)?);
     }
     if let Some(file) = torus_file {
         jobs.push(mesh_job(temp, &file, (width, height), options.embree)?);
@@ -612,12 +616,62 @@ fn mesh_job(
         "output": "mesh-job.pfm",
     });
     std::fs::write(&manifest, text.to_string()).map_err(|e| e.to_string())?;
+    let (seconds, embree_seconds) = job_in_turns(&manifest, embree);
+    let name = file
+        .file_stem()
+        .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
+    Ok(JobFigures {
+        name: format!("{name} job ({width}x{height} depth, load + build + render + write)"),
+        jobs: 1,
+        seconds,
+        embree_seconds,
+    })
+}
+
+/// One `depth` job of `count` spheres listed in its manifest ([`scattered_spheres`], the
+/// sphere field's view), from reading the manifest to writing the image, as
+/// [`mesh_job`] runs it: a scene whose reading is all JSON.
+fn sphere_job(
+    temp: &Path,
+    count: usize,
+    (width, height): (u32, u32),
+    embree: bool,
+) -> Result<JobFigures, String> {
+    let manifest = temp.join("sphere-job.json");
+    let spheres: Vec<serde_json::Value> = scattered_spheres(count)
+        .iter()
+        .map(|s| json!({"center": s.center.to_array(), "radius": s.radius}))
+        .collect();
+    let text = json!({
+        "image": {"width": width, "height": height},
+        "camera": {"look_from": [8, 12, 30], "look_at": [0, 0, 0], "vfov": 45},
+        "integrator": {"type": "depth"},
+        "spheres": spheres,
+        "output": "sphere-job.pfm",
+    });
+    std::fs::write(&manifest, text.to_string()).map_err(|e| e.to_string())?;
+    let (seconds, embree_seconds) = job_in_turns(&manifest, embree);
+    Ok(JobFigures {
+        name: format!(
+            "{}k spheres job ({width}x{height} depth, read + build + render + write)",
+            count / 1000
+        ),
+        jobs: 1,
+        seconds,
+        embree_seconds,
+    })
+}
+
+/// The median time of the job of `manifest`, each run in a fresh batch, and with
+/// `embree` the same job's through the Embree backend: a warm-up of each, then runs in
+/// turns, so that drift hits both alike.
+fn job_in_turns(manifest: &Path, embree: bool) -> (f64, Option<f64>) {
     let run = |backend: Backend| {
         let report = Batch::new(JobOptions {
             backend,
             ..JobOptions::default()
         })
-        .run(&manifest, &|_| {});
+        .run(manifest, &|_| {});
         assert!(report.ok(), "{:?}", report.error);
     };
     let backends: &[Backend] = if embree {
@@ -625,7 +679,6 @@ fn mesh_job(
     } else {
         &[Backend::Raybatch]
     };
-    // A warm-up of each, then runs in turns, so that drift hits both alike.
     let mut times = vec![Vec::new(); backends.len()];
     for round in 0..6 {
         for (b, &backend) in backends.iter().enumerate() {
@@ -637,15 +690,7 @@ fn mesh_job(
         }
     }
     let mut times = times.into_iter().map(median_of);
-    let name = file
-        .file_stem()
-        .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
-    Ok(JobFigures {
-        name: format!("{name} job ({width}x{height} depth, load + build + render + write)"),
-        jobs: 1,
-        seconds: times.next().unwrap_or_default(),
-        embree_seconds: times.next(),
-    })
+    (times.next().unwrap_or_default(), times.next())
 }
 
 fn canonical_job(temp: &Path) -> Result<JobFigures, String> {
