@@ -684,7 +684,7 @@ impl Scene {
 
     /// Whether a plane or a sphere is hit, the hint's sphere tested first. Out of line
     /// and skipped when there are neither: inlined, the spheres' search made every query
-    /// set up its large stack frame, triangles only or not (about 40 instructions a ray).
+    /// set up its large stack frame, on scenes of triangles only too.
     #[inline(never)]
     fn any_analytic(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         self.any_plane(ray) || self.any_sphere(ray, hint)
