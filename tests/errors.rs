@@ -17,6 +17,11 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
         ),
         ("empty.json", String::new(), vec!["line 1, column 0", "EOF"]),
         (
+            "trailing-text.json",
+            format!("{{{IMAGE}}} {{}}"),
+            vec!["line 1, column", "trailing characters"],
+        ),
+        (
             "array.json",
             "[1, 2]".to_string(),
             vec!["line 1", "expected struct"],
