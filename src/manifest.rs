@@ -468,13 +468,13 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
     let sampler = sampler_desc(raw.sampler)?;
 
     let (materials, material_ids) = materials(raw.materials.unwrap_or_default())?;
-    let material = |key: String, name: Option<String>| -> Result<Option<MaterialId>> {
+    let material = |key: &dyn Key, name: Option<String>| -> Result<Option<MaterialId>> {
         match name {
             None => Ok(None),
             Some(name) => match material_ids.get(name.as_str()) {
                 Some(&id) => Ok(Some(id)),
                 None => Err(ManifestError::invalid(
-                    key,
+                    key.spell(),
                     format!("unknown material `{name}`{}", known_names(&material_ids)),
                 )),
             },
@@ -483,36 +483,16 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
 
     let mut spheres = Vec::new();
     for (i, s) in raw.spheres.unwrap_or_default().into_iter().enumerate() {
-        // A valid sphere is taken without spelling out its keys, which only an error
-        // needs (a manifest may list a hundred thousand spheres); anything else goes
-        // through the checks below, which name the failing key.
-        let in_range = |x: f64| x.is_finite() && x.abs() <= MAX_MAGNITUDE;
-        let known = match &s.material {
-            None => Some(None),
-            Some(name) => material_ids.get(name.as_str()).map(|&id| Some(id)),
-        };
-        if let Some(material) = known
-            && s.center.iter().all(|&x| in_range(x))
-            && in_range(s.radius)
-            && s.radius > 0.0
-        {
-            spheres.push(SphereDesc {
-                center: DVec3::from_array(s.center),
-                radius: s.radius,
-                material,
-            });
-            continue;
-        }
-        let key = |field: &str| format!("spheres[{i}].{field}");
+        let key = |field: &'static str| move || format!("spheres[{i}].{field}");
         let center = point(&key("center"), s.center)?;
         let radius = finite(&key("radius"), s.radius)?;
         if !(radius > 0.0 && radius <= MAX_MAGNITUDE) {
             return Err(ManifestError::invalid(
-                key("radius"),
+                key("radius").spell(),
                 format!("must be greater than 0 (and at most {MAX_MAGNITUDE:e}), got {radius}"),
             ));
         }
-        let material = material(key("material"), s.material)?;
+        let material = material(&key("material"), s.material)?;
         spheres.push(SphereDesc {
             center,
             radius,
@@ -522,10 +502,10 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
 
     let mut planes = Vec::new();
     for (i, p) in raw.planes.unwrap_or_default().into_iter().enumerate() {
-        let key = |field: &str| format!("planes[{i}].{field}");
+        let key = |field: &'static str| move || format!("planes[{i}].{field}");
         let point_ = point(&key("point"), p.point)?;
         let normal = direction(&key("normal"), p.normal)?;
-        let material = material(key("material"), p.material)?;
+        let material = material(&key("material"), p.material)?;
         planes.push(PlaneDesc {
             point: point_,
             normal,
@@ -553,7 +533,7 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
             Some(t) => transform_matrix(&key("transform"), t)?,
             None => DMat4::IDENTITY,
         };
-        let material = material(key("material"), m.material)?;
+        let material = material(&key("material"), m.material)?;
         meshes.push(MeshDesc {
             file,
             transform,
@@ -955,52 +935,80 @@ fn transform_matrix(key: &str, t: raw::Transform) -> Result<DMat4> {
     ))
 }
 
-fn finite(key: &str, x: f64) -> Result<f64> {
+/// Where a value sits in the manifest (`spheres[3].radius`), spelled out only when an
+/// error names it: a manifest may list a hundred thousand spheres, and formatting their
+/// keys up front took as long as reading them. A key is text, or a closure making it.
+trait Key {
+    fn spell(&self) -> String;
+}
+
+impl Key for str {
+    fn spell(&self) -> String {
+        self.to_string()
+    }
+}
+
+impl Key for String {
+    fn spell(&self) -> String {
+        self.clone()
+    }
+}
+
+impl<F: Fn() -> String> Key for F {
+    fn spell(&self) -> String {
+        self()
+    }
+}
+
+fn finite(key: &(impl Key + ?Sized), x: f64) -> Result<f64> {
     if x.is_finite() {
         Ok(x)
     } else {
         Err(ManifestError::invalid(
-            key,
+            key.spell(),
             format!("must be a finite number, got {x}"),
         ))
     }
 }
 
-fn finite_at_least(key: &str, x: f64, min: f64) -> Result<f64> {
+fn finite_at_least(key: &(impl Key + ?Sized), x: f64, min: f64) -> Result<f64> {
     let x = finite(key, x)?;
     if x < min {
         return Err(ManifestError::invalid(
-            key,
+            key.spell(),
             format!("must be at least {min}, got {x}"),
         ));
     }
     Ok(x)
 }
 
-fn bounded(key: &str, x: f64) -> Result<f64> {
+fn bounded(key: &(impl Key + ?Sized), x: f64) -> Result<f64> {
     let x = finite(key, x)?;
     if x.abs() > MAX_MAGNITUDE {
         return Err(ManifestError::invalid(
-            key,
+            key.spell(),
             format!("{x} is out of range (magnitudes up to {MAX_MAGNITUDE:e} are accepted)"),
         ));
     }
     Ok(x)
 }
 
-fn point(key: &str, v: raw::Vec3) -> Result<DVec3> {
+fn point(key: &(impl Key + ?Sized), v: raw::Vec3) -> Result<DVec3> {
     for (i, &x) in v.iter().enumerate() {
-        bounded(&format!("{key}[{i}]"), x)?;
+        bounded(&|| format!("{}[{i}]", key.spell()), x)?;
     }
     Ok(DVec3::from_array(v))
 }
 
 /// A direction: any non-zero vector, returned at unit length.
-fn direction(key: &str, v: raw::Vec3) -> Result<DVec3> {
+fn direction(key: &(impl Key + ?Sized), v: raw::Vec3) -> Result<DVec3> {
     let v = point(key, v)?;
     let length = v.length();
     if length == 0.0 {
-        return Err(ManifestError::invalid(key, "must not be the zero vector"));
+        return Err(ManifestError::invalid(
+            key.spell(),
+            "must not be the zero vector",
+        ));
     }
     Ok(v / length)
 }
