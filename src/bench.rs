@@ -257,6 +257,11 @@ pub fn scattered_spheres(count: usize) -> Vec<Sphere> {
         .collect()
 }
 
+/// Where the sphere field is seen from (looking at the origin), and the vertical field of
+/// view in degrees: the trace scene's view and the sphere job's.
+const SPHERE_FIELD_EYE: [f64; 3] = [8.0, 12.0, 30.0];
+const SPHERE_FIELD_VFOV: f64 = 45.0;
+
 /// `count` spheres of varied sizes scattered in a cube, seen from outside.
 fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
     let spheres = scattered_spheres(count);
@@ -268,9 +273,9 @@ fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
         },
         load: None,
         peak_baseline: None,
-        eye: DVec3::new(8.0, 12.0, 30.0),
+        eye: DVec3::from_array(SPHERE_FIELD_EYE),
         target: DVec3::ZERO,
-        vfov: 45.0,
+        vfov: SPHERE_FIELD_VFOV,
         size,
     }
 }
@@ -644,7 +649,7 @@ fn sphere_job(
         .collect();
     let text = json!({
         "image": {"width": width, "height": height},
-        "camera": {"look_from": [8, 12, 30], "look_at": [0, 0, 0], "vfov": 45},
+        "camera": {"look_from": SPHERE_FIELD_EYE, "look_at": [0, 0, 0], "vfov": SPHERE_FIELD_VFOV},
         "integrator": {"type": "depth"},
         "spheres": spheres,
         "output": "sphere-job.pfm",
