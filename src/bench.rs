@@ -38,6 +38,9 @@ pub struct BenchOptions {
     pub only: Vec<String>,
     /// Also trace with Embree (needs the feature).
     pub embree: bool,
+    /// Our packets test leaves eight rays at a time even where the CPU has AVX-512 (to
+    /// compare the two widths; the trace rows only).
+    pub eight_lane_packets: bool,
 }
 
 /// Throughput at one thread count, in millions of rays per second: one ray per query
@@ -358,7 +361,10 @@ fn trace_scene(
                 build_times[1].push(start.elapsed().as_secs_f64());
             }
         }
-        let ours = Scene::build(&scene.geometry);
+        let mut ours = Scene::build(&scene.geometry);
+        if options.eight_lane_packets {
+            ours.set_wide_leaves(false);
+        }
         let ours_pass = |query| trace_pass(&ours, &rays, query);
         #[cfg(feature = "embree")]
         let reference_pass = reference.as_ref().map(|reference| {
@@ -732,6 +738,20 @@ fn status_kb(key: &str) -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with(key))?;
     line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// How our packets test leaves in the trace rows, for reports.
+pub fn packet_lanes(options: &BenchOptions) -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    match crate::packet::LeafLanes::widest() {
+        Some(crate::packet::LeafLanes::Sixteen) if !options.eight_lane_packets => {
+            return "leaves tested sixteen rays at a time (AVX-512)";
+        }
+        Some(_) => return "leaves tested eight rays at a time (AVX2)",
+        None => {}
+    }
+    let _ = options;
+    "none (no AVX2: rays one by one)"
 }
 
 /// The CPU's model name (Linux), for reports.

@@ -51,6 +51,8 @@ pub mod sampler;
 pub mod scene;
 #[cfg(target_arch = "x86_64")]
 pub mod simd;
+#[cfg(target_arch = "x86_64")]
+pub mod simd512;
 pub mod sphere;
 #[cfg(target_arch = "x86_64")]
 pub mod sphere_packet;

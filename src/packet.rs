@@ -1,4 +1,5 @@
-//! Packets of coherent rays (the camera rays of an 8 × 8 tile) traced together with AVX2.
+//! Packets of coherent rays (the camera rays of an 8 × 8 tile) traced together with AVX2
+//! (and AVX-512 where the CPU has it).
 //!
 //! Inner nodes are tested once per packet, with bounds on the packet's entry and exit
 //! distances: the products `(plane − origin) · (1/d)` are bilinear in the origin and the
@@ -8,7 +9,8 @@
 //! robust test would skip it. Leaves are tested with exactly the single-ray box and
 //! triangle arithmetic: the box against a row of eight rays per instruction, then the
 //! triangles either ray by ray (four per instruction, as a single ray tests them) or, where
-//! most of a row entered the box, each triangle against the row's eight rays at once. A
+//! most of a row entered the box, each triangle against the row's eight rays at once. With
+//! AVX-512 ([`LeafLanes::Sixteen`]) the box and the triangles take two rows at a time. A
 //! packet needs all its rays to share the signs of their direction (one near plane per
 //! axis); callers trace other rays one by one.
 
@@ -22,6 +24,7 @@ use crate::simd::{
     STACK, TriLanes, block_test, distance, lanes4, lanes8, pack, prefetch_child, push_sorted,
     row_constants, row_test, slab_test,
 };
+use crate::simd512::{self, lanes16};
 use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
@@ -32,6 +35,12 @@ const ROWS: usize = PACKET / 8;
 /// Rays of a row entering a leaf from which the row test (each triangle against all eight
 /// rays) replaces the rays' own block tests (four triangles against one ray).
 const ROW_TEST_FROM: u32 = 5;
+/// Rays of a pair of rows entering a leaf from which the sixteen-lane row test (each
+/// triangle against both rows at once, [`crate::simd512`]) replaces the rows' own tests.
+/// Lower than for a row: on a CPU with full-width AVX-512 units a sixteen-lane test costs
+/// what an eight-lane one does. Any-hit packets on the torus, whose leaves few rays
+/// enter, were slower at 3 than with eight lanes; from 6 they are not (DEVELOPERS.md).
+const WIDE_ROW_TEST_FROM: u32 = 6;
 
 /// The bound below which a triangle distance may still matter to a ray whose nearest hit
 /// so far is `nearest`: strict for any-hit (`t < tmax`), ties admitted for closest (which
@@ -182,8 +191,8 @@ pub fn record(tree: PacedTree, visits: Visits) {
     });
 }
 
-/// One ray per lane, eight rays per row.
-#[repr(C, align(32))]
+/// One ray per lane, eight rays per row; two rows fill a 64-byte AVX-512 register.
+#[repr(C, align(64))]
 struct Rows([[f32; 8]; ROWS]);
 
 impl Rows {
@@ -196,16 +205,23 @@ impl Rows {
 /// rays' directions differ in sign on some axis or a ray has a NaN.
 ///
 /// # Safety
-/// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
-#[target_feature(enable = "avx2")]
+/// The CPU must support `lanes` ([`LeafLanes::supported`]), and
+/// `bvh.stack_bound() <= STACK`.
+#[inline]
 pub unsafe fn closest(
+    lanes: LeafLanes,
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
     found: impl FnMut(usize, Nearest, TriangleHit),
 ) -> Option<Visits> {
     // SAFETY: as required of the caller.
-    unsafe { trace::<false>(bvh, blocks, rays, found, &mut []) }
+    unsafe {
+        match lanes {
+            LeafLanes::Eight => trace_avx2::<false>(bvh, blocks, rays, found, &mut []),
+            LeafLanes::Sixteen => trace_avx512::<false>(bvh, blocks, rays, found, &mut []),
+        }
+    }
 }
 
 /// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
@@ -215,22 +231,93 @@ pub unsafe fn closest(
 ///
 /// # Safety
 /// As for [`closest`].
-#[target_feature(enable = "avx2")]
+#[inline]
 pub unsafe fn any(
+    lanes: LeafLanes,
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
     out: &mut [bool],
 ) -> Option<Visits> {
     assert_eq!(rays.len(), out.len());
+    let found = |_, _, _| ();
     // SAFETY: as required of the caller.
-    unsafe { trace::<true>(bvh, blocks, rays, |_, _, _| (), out) }
+    unsafe {
+        match lanes {
+            LeafLanes::Eight => trace_avx2::<true>(bvh, blocks, rays, found, out),
+            LeafLanes::Sixteen => trace_avx512::<true>(bvh, blocks, rays, found, out),
+        }
+    }
+}
+
+/// How many rays a packet's leaf tests take at once: a row of eight (AVX2), or two rows
+/// (AVX-512). Either gives the same hits, bit for bit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LeafLanes {
+    Eight,
+    Sixteen,
+}
+
+impl LeafLanes {
+    /// The widest this CPU supports, if it supports packets at all (AVX2).
+    pub fn widest() -> Option<LeafLanes> {
+        if simd512::available() {
+            Some(LeafLanes::Sixteen)
+        } else if crate::simd::available() {
+            Some(LeafLanes::Eight)
+        } else {
+            None
+        }
+    }
+
+    /// Whether this CPU supports packets with these tests.
+    pub fn supported(self) -> bool {
+        match self {
+            LeafLanes::Eight => crate::simd::available(),
+            LeafLanes::Sixteen => simd512::available(),
+        }
+    }
+}
+
+/// [`trace`] with eight-lane leaf tests, compiled for AVX2.
+///
+/// # Safety
+/// As for [`closest`], with AVX2.
+#[target_feature(enable = "avx2")]
+unsafe fn trace_avx2<const ANY: bool>(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    rays: &[TriangleRay],
+    closest: impl FnMut(usize, Nearest, TriangleHit),
+    any: &mut [bool],
+) -> Option<Visits> {
+    // SAFETY: as required of the caller.
+    unsafe { trace::<ANY, false>(bvh, blocks, rays, closest, any) }
+}
+
+/// [`trace`] with sixteen-lane leaf tests, compiled for AVX-512 (and AVX2).
+///
+/// # Safety
+/// As for [`closest`], with AVX-512F and AVX2.
+#[target_feature(enable = "avx2,avx512f")]
+unsafe fn trace_avx512<const ANY: bool>(
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    rays: &[TriangleRay],
+    closest: impl FnMut(usize, Nearest, TriangleHit),
+    any: &mut [bool],
+) -> Option<Visits> {
+    // SAFETY: as required of the caller.
+    unsafe { trace::<ANY, true>(bvh, blocks, rays, closest, any) }
 }
 
 /// The packet traversal: closest hits reported to `closest`, or with `ANY` hit flags
-/// into `any`.
-#[target_feature(enable = "avx2")]
-unsafe fn trace<const ANY: bool>(
+/// into `any`; leaf tests sixteen rays wide with `WIDE`.
+///
+/// # Safety
+/// Only from [`trace_avx2`] (without `WIDE`) or [`trace_avx512`], into which it inlines.
+#[inline(always)]
+unsafe fn trace<const ANY: bool, const WIDE: bool>(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
@@ -247,7 +334,7 @@ unsafe fn trace<const ANY: bool>(
     if n == 0 {
         return Some(visits);
     }
-    // SAFETY: AVX2 is enabled in this function.
+    // SAFETY: AVX2 is enabled where `trace` inlines.
     let packet = unsafe { PacketBounds::of(rays) }?;
     any.fill(false);
     // SAFETY: as above.
@@ -275,7 +362,7 @@ unsafe fn trace<const ANY: bool>(
     // Each row's set-up at once, a ray per lane: the divisions and choices of
     // `simd::ray_constants`, the same IEEE operations lane by lane (so bit-identical).
     for r in 0..ROWS {
-        // SAFETY: AVX2 is enabled in this function.
+        // SAFETY: AVX2 is enabled where `trace` inlines.
         let row = unsafe { row_constants(std::array::from_fn(|l| &rays[(r * 8 + l).min(n - 1)])) };
         let store = |rows: &mut Rows, x: __m256| {
             // SAFETY: rows are 32-byte aligned arrays of eight floats.
@@ -299,6 +386,11 @@ unsafe fn trace<const ANY: bool>(
         }
         shared_axes[r] = axes[r * 8..r * 8 + 8].iter().all(|&k| k == axes[r * 8]);
     }
+    // The same for pairs of rows, which the sixteen-lane row test needs.
+    let shared_pairs: [bool; ROWS / 2] = std::array::from_fn(|pair| {
+        let r = 2 * pair;
+        shared_axes[r] && shared_axes[r + 1] && axes[r * 8] == axes[r * 8 + 8]
+    });
     let nodes = bvh.nodes();
     if nodes.is_empty() {
         return Some(visits);
@@ -318,7 +410,7 @@ unsafe fn trace<const ANY: bool>(
             let planes = node.planes.as_ptr().cast::<f32>();
             // SAFETY: plane offsets are below 6 × 8 floats of a 64-byte aligned node.
             let load = |offset: usize| unsafe { _mm256_load_ps(planes.add(offset)) };
-            // SAFETY: AVX2 is enabled in this function.
+            // SAFETY: AVX2 is enabled where `trace` inlines.
             let (mask, enter) =
                 unsafe { packet.enters(near.map(load), far.map(load), packet_tmax) };
             if mask != 0 {
@@ -354,37 +446,54 @@ unsafe fn trace<const ANY: bool>(
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             visits.leaves += 1;
-            for r in 0..ROWS {
-                // SAFETY: rows are 32-byte aligned arrays of eight floats.
-                let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
-                let group = GroupLanes {
-                    origin: origin.each_ref().map(lane),
-                    inv_dir: inv.each_ref().map(lane),
-                    inv_dir_far: inv_far.each_ref().map(lane),
-                    near,
-                    far,
-                };
-                // The single-ray test, the leaf's box against eight rays.
-                // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
-                let (_, entered) = unsafe {
-                    slab_test! { &group, planes, slot, lane(&tmin), lane(&t_box),
-                    broadcast_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps,
-                    _mm256_cmp_ps }
-                };
-                let mut hits = _mm256_movemask_ps(entered) as u32;
-                visits.entries += hits.count_ones();
-                if hits.count_ones() >= ROW_TEST_FROM && shared_axes[r] {
-                    // Each triangle against the row's rays at once.
-                    let [kx, ky, kz] = axes[r * 8];
+
+            // The hits of the triangle at `slot` for the rays `8 · $row + i`, `i` the lanes
+            // set in both `$mask` and `$hits` (the rays entering the box, still searching),
+            // `$lanes` reading the test's lanes: each is kept if nearest (closest hit), or
+            // ends its ray's search (any hit, which also clears its bit in `$hits`).
+            macro_rules! take_hits {
+                ($row:expr, $mask:expr, $hits:ident, $found:expr, $lanes:ident, $slot:expr) => {{
+                    let mut m = $mask & $hits;
+                    while m != 0 {
+                        let i = m.trailing_zeros() as usize;
+                        m &= m - 1;
+                        let k = $row * 8 + i;
+                        if ANY {
+                            any[k] = true;
+                            nearest[k].t = f32::NEG_INFINITY;
+                            $hits &= !(1 << i);
+                            live -= 1;
+                        } else {
+                            // SAFETY: the width's features are enabled where `trace` inlines.
+                            let t = unsafe { $lanes($found.t) }[i];
+                            if !nearest[k].improves(t, $slot) {
+                                continue;
+                            }
+                            nearest[k] = Nearest { t, slot: $slot };
+                            // SAFETY: as above.
+                            found[k] = Some(unsafe { $found.hit(i) });
+                        }
+                        t_box.0[k / 8][k % 8] = nearest[k].horizon();
+                        t_tri.0[k / 8][k % 8] = t_triangle::<ANY>(nearest[k]);
+                        improved = true;
+                    }
+                }};
+            }
+            // Each of the leaf's triangles against the rays `8 · $row + i` of `$hits` at
+            // once, by `$test` over the rays' constants in `$row_lanes` (which share the
+            // axes of ray `8 · $row`).
+            macro_rules! row_tests {
+                ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $lanes:ident) => {{
+                    let [kx, ky, kz] = axes[$row * 8];
                     let row = TriLanes {
                         kx,
                         ky,
                         kz,
-                        origin: origin.each_ref().map(lane),
-                        sx: lane(&shear_rows[0]),
-                        sy: lane(&shear_rows[1]),
-                        sz: lane(&shear_rows[2]),
-                        tmin: lane(&tmin),
+                        origin: origin.each_ref().map($row_lanes),
+                        sx: $row_lanes(&shear_rows[0]),
+                        sy: $row_lanes(&shear_rows[1]),
+                        sz: $row_lanes(&shear_rows[2]),
+                        tmin: $row_lanes(&tmin),
                     };
                     for b in first..first + count {
                         let block = &blocks[b as usize];
@@ -393,76 +502,126 @@ unsafe fn trace<const ANY: bool>(
                             if l > 0 && block.ids[l] == block.ids[l - 1] {
                                 break;
                             }
-                            // SAFETY: AVX2 is enabled in this function.
+                            // SAFETY: the width's features are enabled where `trace` inlines.
                             let (mask, row_hits) =
-                                unsafe { row_test(block, l, &row, lane(&t_tri)) };
-                            let mut m = mask & hits;
-                            while m != 0 {
-                                let i = m.trailing_zeros() as usize;
-                                m &= m - 1;
-                                let k = r * 8 + i;
+                                unsafe { $test(block, l, &row, $row_lanes(&t_tri)) };
+                            let slot = b * BLOCK as u32 + l as u32;
+                            take_hits!($row, mask, $hits, row_hits, $lanes, slot);
+                        }
+                    }
+                }};
+            }
+            // The triangles against the rays of row `$r` that entered the box (`$hits`):
+            // each triangle against the row at once where enough of it entered, otherwise
+            // each ray against the blocks (four triangles per instruction, as a single ray
+            // tests them).
+            macro_rules! row_triangles {
+                ($r:expr, $hits:expr) => {{
+                    let r: usize = $r;
+                    let mut hits: u32 = $hits;
+                    if hits.count_ones() >= ROW_TEST_FROM && shared_axes[r] {
+                        // SAFETY: rows are 32-byte aligned arrays of eight floats.
+                        let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
+                        row_tests!(r, hits, lane, row_test, lanes8);
+                    } else {
+                        while hits != 0 {
+                            let k = r * 8 + hits.trailing_zeros() as usize;
+                            hits &= hits - 1;
+                            // Ray `k`'s constants in every lane of a block test, from its rows.
+                            let l = k % 8;
+                            let [kx, ky, kz] = axes[k];
+                            // SAFETY (here and below): AVX2 is enabled where `trace` inlines.
+                            let set1 = |x: f32| unsafe { _mm_set1_ps(x) };
+                            let tri = TriLanes {
+                                kx,
+                                ky,
+                                kz,
+                                origin: [0, 1, 2].map(|a| set1(origin[a].0[r][l])),
+                                sx: set1(shear_rows[0].0[r][l]),
+                                sy: set1(shear_rows[1].0[r][l]),
+                                sz: set1(shear_rows[2].0[r][l]),
+                                tmin: set1(tmin.0[r][l]),
+                            };
+                            for b in first..first + count {
+                                let limit = set1(t_triangle::<ANY>(nearest[k]));
+                                let (mask, lanes) =
+                                    unsafe { block_test(&blocks[b as usize], &tri, limit) };
+                                if mask == 0 {
+                                    continue;
+                                }
                                 if ANY {
                                     any[k] = true;
                                     nearest[k].t = f32::NEG_INFINITY;
-                                    hits &= !(1 << i);
+                                    t_box.0[r][l] = f32::NEG_INFINITY;
+                                    t_tri.0[r][l] = f32::NEG_INFINITY;
                                     live -= 1;
-                                } else {
-                                    let slot = b * BLOCK as u32 + l as u32;
-                                    // SAFETY: AVX2 is enabled in this function.
-                                    let t = unsafe { lanes8(row_hits.t) }[i];
-                                    if !nearest[k].improves(t, slot) {
-                                        continue;
-                                    }
-                                    nearest[k] = Nearest { t, slot };
-                                    // SAFETY: as above.
-                                    found[k] = Some(unsafe { row_hits.hit(i) });
+                                    improved = true;
+                                    break;
                                 }
-                                t_box.0[r][i] = nearest[k].horizon();
-                                t_tri.0[r][i] = t_triangle::<ANY>(nearest[k]);
-                                improved = true;
+                                if lanes.keep_nearest(mask, b, &mut nearest[k], &mut found[k]) {
+                                    t_box.0[r][l] = nearest[k].horizon();
+                                    t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
+                                    improved = true;
+                                }
                             }
                         }
                     }
-                    continue;
-                }
-                while hits != 0 {
-                    let k = r * 8 + hits.trailing_zeros() as usize;
-                    hits &= hits - 1;
-                    // Ray `k`'s constants in every lane of a block test, from its rows.
-                    let l = k % 8;
-                    let [kx, ky, kz] = axes[k];
-                    let tri = TriLanes {
-                        kx,
-                        ky,
-                        kz,
-                        origin: [0, 1, 2].map(|a| _mm_set1_ps(origin[a].0[r][l])),
-                        sx: _mm_set1_ps(shear_rows[0].0[r][l]),
-                        sy: _mm_set1_ps(shear_rows[1].0[r][l]),
-                        sz: _mm_set1_ps(shear_rows[2].0[r][l]),
-                        tmin: _mm_set1_ps(tmin.0[r][l]),
+                }};
+            }
+
+            if WIDE {
+                // Two rows at a time: the box against sixteen rays, then each triangle
+                // against both rows at once where enough of them entered and they share
+                // their axes, otherwise row by row.
+                for (pair, &shared) in shared_pairs.iter().enumerate() {
+                    let r = 2 * pair;
+                    // SAFETY: rows are 64-byte aligned, so rows `r` and `r + 1` are sixteen
+                    // floats on a 64-byte boundary; AVX-512F is enabled where `trace`
+                    // inlines.
+                    let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
+                    let group = GroupLanes {
+                        origin: origin.each_ref().map(pair_lanes),
+                        inv_dir: inv.each_ref().map(pair_lanes),
+                        inv_dir_far: inv_far.each_ref().map(pair_lanes),
+                        near,
+                        far,
                     };
-                    for b in first..first + count {
-                        let limit = _mm_set1_ps(t_triangle::<ANY>(nearest[k]));
-                        // SAFETY: AVX2 is enabled in this function.
-                        let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &tri, limit) };
-                        if mask == 0 {
-                            continue;
-                        }
-                        if ANY {
-                            any[k] = true;
-                            nearest[k].t = f32::NEG_INFINITY;
-                            t_box.0[r][k % 8] = f32::NEG_INFINITY;
-                            t_tri.0[r][k % 8] = f32::NEG_INFINITY;
-                            live -= 1;
-                            improved = true;
-                            break;
-                        }
-                        if lanes.keep_nearest(mask, b, &mut nearest[k], &mut found[k]) {
-                            t_box.0[r][k % 8] = nearest[k].horizon();
-                            t_tri.0[r][k % 8] = t_triangle::<ANY>(nearest[k]);
-                            improved = true;
-                        }
+                    // SAFETY: plane offsets plus the slot stay within the node's 6 × 8
+                    // floats; AVX-512F is enabled where `trace` inlines.
+                    let mut hits = unsafe {
+                        let (tmin, tmax) = (pair_lanes(&tmin), pair_lanes(&t_box));
+                        simd512::leaf_box_test(&group, planes, slot, tmin, tmax)
+                    };
+                    visits.entries += hits.count_ones();
+                    if hits.count_ones() >= WIDE_ROW_TEST_FROM && shared {
+                        row_tests!(r, hits, pair_lanes, simd512::row_test, lanes16);
+                    } else {
+                        row_triangles!(r, hits & 0xff);
+                        row_triangles!(r + 1, hits >> 8);
                     }
+                }
+            } else {
+                for r in 0..ROWS {
+                    // SAFETY: rows are 32-byte aligned arrays of eight floats.
+                    let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
+                    let group = GroupLanes {
+                        origin: origin.each_ref().map(lane),
+                        inv_dir: inv.each_ref().map(lane),
+                        inv_dir_far: inv_far.each_ref().map(lane),
+                        near,
+                        far,
+                    };
+                    // The single-ray test, the leaf's box against eight rays.
+                    // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
+                    let (_, entered) = unsafe {
+                        slab_test! { &group, planes, slot, lane(&tmin), lane(&t_box),
+                        broadcast_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps,
+                        _mm256_cmp_ps }
+                    };
+                    // SAFETY: AVX2 is enabled where `trace` inlines.
+                    let hits = unsafe { _mm256_movemask_ps(entered) } as u32;
+                    visits.entries += hits.count_ones();
+                    row_triangles!(r, hits);
                 }
             }
             if improved {
@@ -471,7 +630,8 @@ unsafe fn trace<const ANY: bool>(
                 let row = |r: usize| unsafe { _mm256_load_ps(t_box.0[r].as_ptr()) };
                 let mut widest = row(0);
                 for r in 1..ROWS {
-                    widest = _mm256_max_ps(widest, row(r));
+                    // SAFETY: AVX2 is enabled where `trace` inlines.
+                    widest = unsafe { _mm256_max_ps(widest, row(r)) };
                 }
                 let mut lanes = [0f32; 8];
                 // SAFETY: `lanes` holds eight floats.

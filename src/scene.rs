@@ -290,6 +290,9 @@ pub struct Scene {
     avx2: bool,
     /// Whether coherent rays meet the spheres as packets: AVX2, and the stack fits.
     sphere_packets: bool,
+    /// Whether triangle packets test leaves sixteen rays at a time (AVX-512) rather than
+    /// eight ([`crate::packet::LeafLanes`]).
+    wide_leaves: bool,
     /// Whether packets through a tree are skipped for a while after a wasteful one
     /// ([`crate::packet::worth_trying`]); off, every eligible group is a packet.
     adaptive_packets: bool,
@@ -347,6 +350,7 @@ impl Scene {
             sphere_packets: simd_available() && sphere_bvh.stack_bound() <= SIMD_STACK,
             adaptive_packets: true,
             avx2: simd_available(),
+            wide_leaves: wide_leaves_available(),
             sphere_bvh,
             triangles,
             counts,
@@ -379,6 +383,28 @@ impl Scene {
         self.avx2 = on && simd_available();
         self.simd = self.avx2 && self.triangles.fits_simd_stack();
         self.sphere_packets = self.avx2 && self.sphere_bvh.stack_bound() <= SIMD_STACK;
+        self.wide_leaves = self.avx2 && wide_leaves_available();
+    }
+
+    /// Whether triangle packets test leaves sixteen rays at a time (AVX-512).
+    pub fn uses_wide_leaves(&self) -> bool {
+        self.wide_leaves
+    }
+
+    /// Has triangle packets test leaves sixteen rays at a time (where the CPU has AVX-512)
+    /// or eight, to compare the two; both give bit-identical results.
+    pub fn set_wide_leaves(&mut self, on: bool) {
+        self.wide_leaves = on && self.avx2 && wide_leaves_available();
+    }
+
+    /// The leaf tests of triangle packets.
+    #[cfg(target_arch = "x86_64")]
+    fn leaf_lanes(&self) -> LeafLanes {
+        if self.wide_leaves {
+            LeafLanes::Sixteen
+        } else {
+            LeafLanes::Eight
+        }
     }
 
     /// Whether coherent rays meet the spheres as packets ([`crate::sphere_packet`]).
@@ -548,9 +574,11 @@ impl Scene {
             };
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
-            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
+            // `wide_leaves` only when it has AVX-512F too.
             if self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
                 crate::packet::closest(
+                    self.leaf_lanes(),
                     &self.triangles.bvh,
                     &self.triangles.blocks,
                     prepared,
@@ -598,7 +626,8 @@ impl Scene {
             {
                 let mut triangles = [false; PACKET];
                 let n = rays.len();
-                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
+                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
+                // `wide_leaves` only when it has AVX-512F too.
                 let traced = self.traced_as_packet(PacedTree::Triangles, self.simd, || {
                     // A ray already hit needs no triangle: an empty interval.
                     let prepared =
@@ -611,6 +640,7 @@ impl Scene {
                     // SAFETY: as above.
                     unsafe {
                         crate::packet::any(
+                            self.leaf_lanes(),
                             &self.triangles.bvh,
                             &self.triangles.blocks,
                             &prepared[..n],
@@ -919,15 +949,21 @@ impl Tracer for Scene {
 }
 
 #[cfg(target_arch = "x86_64")]
-use crate::packet::{PACKET, PacedTree};
+use crate::packet::{LeafLanes, PACKET, PacedTree};
 #[cfg(target_arch = "x86_64")]
 use crate::simd::{STACK as SIMD_STACK, available as simd_available};
+#[cfg(target_arch = "x86_64")]
+use crate::simd512::available as wide_leaves_available;
 #[cfg(not(target_arch = "x86_64"))]
 const SIMD_STACK: usize = 0;
 #[cfg(not(target_arch = "x86_64"))]
 const PACKET: usize = 64;
 #[cfg(not(target_arch = "x86_64"))]
 fn simd_available() -> bool {
+    false
+}
+#[cfg(not(target_arch = "x86_64"))]
+fn wide_leaves_available() -> bool {
     false
 }
 

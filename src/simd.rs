@@ -39,7 +39,7 @@ struct Lanes {
 
 /// Rays' constants for the watertight test: one ray in every lane (`__m128`, a ray against
 /// a block's four triangles), or a ray per lane (`__m256`, a row of a packet against one
-/// triangle; all its rays then share the axes `k`).
+/// triangle, or `__m512`, two rows; all its rays then share the axes `k`).
 #[derive(Clone, Copy)]
 pub(crate) struct TriLanes<V> {
     pub(crate) kx: usize,
@@ -530,6 +530,7 @@ macro_rules! watertight_test {
         }
     }};
 }
+pub(crate) use watertight_test;
 
 /// The watertight test of a block's four triangles against one ray: a bit per lane with
 /// `tmin < t < tmax`, and the lanes' distance, edge functions and determinant (meaningless
@@ -576,13 +577,13 @@ pub(crate) unsafe fn row_test(
 }
 
 /// A watertight test's per-lane values: `__m128` for a block's four triangles, `__m256` for
-/// a row's eight rays.
+/// a row's eight rays, `__m512` for two rows ([`crate::simd512`]).
 pub(crate) struct Hits<V> {
     pub(crate) t: V,
-    u: V,
-    v: V,
-    w: V,
-    det: V,
+    pub(crate) u: V,
+    pub(crate) v: V,
+    pub(crate) w: V,
+    pub(crate) det: V,
 }
 
 impl Hits<__m128> {
@@ -635,7 +636,7 @@ impl<V: Copy> Hits<V> {
     /// The [`TriangleHit`] of the lane `get` reads, barycentrics divided as the scalar test
     /// divides.
     #[inline(always)]
-    fn hit_in(&self, get: impl Fn(V) -> f32) -> TriangleHit {
+    pub(crate) fn hit_in(&self, get: impl Fn(V) -> f32) -> TriangleHit {
         let det = get(self.det);
         TriangleHit {
             t: get(self.t),
@@ -704,7 +705,7 @@ unsafe fn exact_edges8(
 
 /// The edge functions `[u, v, w]`, recomputed in float64 in the lanes set in `mask`.
 #[inline(always)]
-fn exact_edge_lanes<const N: usize>(
+pub(crate) fn exact_edge_lanes<const N: usize>(
     mask: [f32; N],
     [ax, ay, bx, by, cx, cy]: [[f32; N]; 6],
     [mut u, mut v, mut w]: [[f32; N]; 3],

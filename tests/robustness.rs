@@ -724,20 +724,29 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
                 .iter()
                 .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
                 .collect();
-            // The batch queries (packets of coherent rays, single rays otherwise) agree too.
+            // The batch queries (packets of coherent rays, single rays otherwise) agree too,
+            // with the packets' leaf tests eight rays wide and, where the CPU has AVX-512,
+            // sixteen.
             assert!(
                 rays[tiled_start..tiled_start + 64 * 64]
                     .chunks(64)
                     .all(|group| scene.traces_as_packet(group))
             );
-            let (closest, any) = batch_queries(&scene, &rays);
-            for (i, ((c, a), f)) in closest.iter().zip(&any).zip(&fast).enumerate() {
-                assert_eq!(
-                    (c, a),
-                    (&f.0, &f.1),
-                    "{preset:?}: batch ray {i}: {:?}",
-                    rays[i]
-                );
+            for wide in [false, true] {
+                scene.set_wide_leaves(wide);
+                if wide && !scene.uses_wide_leaves() {
+                    eprintln!("this CPU has no AVX-512: sixteen-lane packets do not run here");
+                    continue;
+                }
+                let (closest, any) = batch_queries(&scene, &rays);
+                for (i, ((c, a), f)) in closest.iter().zip(&any).zip(&fast).enumerate() {
+                    assert_eq!(
+                        (c, a),
+                        (&f.0, &f.1),
+                        "{preset:?}, wide leaves {wide}: batch ray {i}: {:?}",
+                        rays[i]
+                    );
+                }
             }
             scene.set_simd(false);
             assert!(!scene.uses_simd());
@@ -989,6 +998,7 @@ fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
             // SAFETY: AVX2 is present, and the default tree fits the packet's stack.
             let visits = unsafe {
                 raybatch::packet::closest(
+                    raybatch::packet::LeafLanes::Eight,
                     scene.triangle_bvh(),
                     scene.triangle_tree().blocks(),
                     &prepared,

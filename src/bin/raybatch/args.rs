@@ -71,6 +71,10 @@ pub struct BenchArgs {
     /// Trace the same rays with Embree too (needs `--features embree`).
     #[arg(long)]
     pub embree: bool,
+    /// Have our packets test leaves eight rays at a time even where the CPU has AVX-512,
+    /// to compare the two widths (trace rows only).
+    #[arg(long)]
+    pub eight_lane_packets: bool,
     /// Print JSON instead of Markdown tables.
     #[arg(long)]
     pub json: bool,

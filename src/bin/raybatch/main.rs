@@ -267,6 +267,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
         threads: args.threads.clone(),
         only: args.only.clone(),
         embree: args.embree,
+        eight_lane_packets: args.eight_lane_packets,
     };
     let report = raybatch::bench::run(&options, &temp);
     let _ = std::fs::remove_dir_all(&temp);
@@ -276,6 +277,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
     } else {
         let command: Vec<String> = std::env::args().skip(1).collect();
         println!("CPU: {}  ", raybatch::bench::cpu_name());
+        println!("Packets: {}  ", raybatch::bench::packet_lanes(&options));
         println!("Command: `raybatch {}`\n", command.join(" "));
         print!("{}", report.to_markdown());
     }
