@@ -64,6 +64,24 @@ pub(crate) struct GroupLanes<V> {
     pub far: [usize; 3],
 }
 
+impl<V> GroupLanes<V> {
+    /// The group's constants, each read by `lanes` from the packet's per-ray arrays.
+    #[inline(always)]
+    pub(crate) fn read<R>(
+        [origin, inv_dir, inv_dir_far]: [&[R; 3]; 3],
+        (near, far): ([usize; 3], [usize; 3]),
+        lanes: impl Fn(&R) -> V,
+    ) -> GroupLanes<V> {
+        GroupLanes {
+            origin: origin.each_ref().map(&lanes),
+            inv_dir: inv_dir.each_ref().map(&lanes),
+            inv_dir_far: inv_dir_far.each_ref().map(&lanes),
+            near,
+            far,
+        }
+    }
+}
+
 /// A float32 at `p` in all eight lanes.
 ///
 /// # Safety
@@ -579,13 +597,8 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                     // floats on a 64-byte boundary; AVX-512F is enabled where `trace`
                     // inlines.
                     let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
-                    let group = GroupLanes {
-                        origin: origin.each_ref().map(pair_lanes),
-                        inv_dir: inv.each_ref().map(pair_lanes),
-                        inv_dir_far: inv_far.each_ref().map(pair_lanes),
-                        near,
-                        far,
-                    };
+                    let group =
+                        GroupLanes::read([&origin, &inv, &inv_far], (near, far), pair_lanes);
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8
                     // floats; AVX-512F is enabled where `trace` inlines.
                     let mut hits = unsafe {
@@ -604,13 +617,7 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                 for r in 0..ROWS {
                     // SAFETY: rows are 32-byte aligned arrays of eight floats.
                     let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
-                    let group = GroupLanes {
-                        origin: origin.each_ref().map(lane),
-                        inv_dir: inv.each_ref().map(lane),
-                        inv_dir_far: inv_far.each_ref().map(lane),
-                        near,
-                        far,
-                    };
+                    let group = GroupLanes::read([&origin, &inv, &inv_far], (near, far), lane);
                     // The single-ray test, the leaf's box against eight rays.
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
                     let (_, entered) = unsafe {

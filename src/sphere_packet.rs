@@ -235,13 +235,7 @@ unsafe fn trace<const ANY: bool>(
             for g in 0..GROUPS {
                 // SAFETY: AVX2 is enabled in this function.
                 let lane = |groups: &Groups| unsafe { groups.load(g) };
-                let group = GroupLanes {
-                    origin: origin.each_ref().map(lane),
-                    inv_dir: inv.each_ref().map(lane),
-                    inv_dir_far: inv_far.each_ref().map(lane),
-                    near,
-                    far,
-                };
+                let group = GroupLanes::read([&origin, &inv, &inv_far], (near, far), lane);
                 // The single-ray test, the leaf's box against four rays.
                 // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 doubles.
                 let (_, entered) = unsafe {
