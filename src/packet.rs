@@ -39,7 +39,8 @@ const ROW_TEST_FROM: u32 = 5;
 /// triangle against both rows at once, [`crate::simd512`]) replaces the rows' own tests.
 /// Lower than for a row: on a CPU with full-width AVX-512 units a sixteen-lane test costs
 /// what an eight-lane one does. Any-hit packets on the torus, whose leaves few rays
-/// enter, were slower at 3 than with eight lanes; from 6 they are not (DEVELOPERS.md).
+/// enter, were slower at 3 than with eight lanes; from 6 they are not (DEVELOPERS.md,
+/// which says how to compare).
 const WIDE_ROW_TEST_FROM: u32 = 6;
 
 /// The bound below which a triangle distance may still matter to a ray whose nearest hit
@@ -223,7 +224,7 @@ impl Rows {
 /// rays' directions differ in sign on some axis or a ray has a NaN.
 ///
 /// # Safety
-/// The CPU must support `lanes` ([`LeafLanes::supported`]), and
+/// The CPU must support AVX2, and AVX-512F too for [`LeafLanes::Sixteen`]; and
 /// `bvh.stack_bound() <= STACK`.
 #[inline]
 pub unsafe fn closest(
@@ -285,14 +286,6 @@ impl LeafLanes {
             Some(LeafLanes::Eight)
         } else {
             None
-        }
-    }
-
-    /// Whether this CPU supports packets with these tests.
-    pub fn supported(self) -> bool {
-        match self {
-            LeafLanes::Eight => crate::simd::available(),
-            LeafLanes::Sixteen => simd512::available(),
         }
     }
 }
@@ -465,41 +458,11 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
             let mut improved = false;
             visits.leaves += 1;
 
-            // The hits of the triangle at `slot` for the rays `8 · $row + i`, `i` the lanes
-            // set in both `$mask` and `$hits` (the rays entering the box, still searching),
-            // `$lanes` reading the test's lanes: each is kept if nearest (closest hit), or
-            // ends its ray's search (any hit, which also clears its bit in `$hits`).
-            macro_rules! take_hits {
-                ($row:expr, $mask:expr, $hits:ident, $found:expr, $lanes:ident, $slot:expr) => {{
-                    let mut m = $mask & $hits;
-                    while m != 0 {
-                        let i = m.trailing_zeros() as usize;
-                        m &= m - 1;
-                        let k = $row * 8 + i;
-                        if ANY {
-                            any[k] = true;
-                            nearest[k].t = f32::NEG_INFINITY;
-                            $hits &= !(1 << i);
-                            live -= 1;
-                        } else {
-                            // SAFETY: the width's features are enabled where `trace` inlines.
-                            let t = unsafe { $lanes($found.t) }[i];
-                            if !nearest[k].improves(t, $slot) {
-                                continue;
-                            }
-                            nearest[k] = Nearest { t, slot: $slot };
-                            // SAFETY: as above.
-                            found[k] = Some(unsafe { $found.hit(i) });
-                        }
-                        t_box.0[k / 8][k % 8] = nearest[k].horizon();
-                        t_tri.0[k / 8][k % 8] = t_triangle::<ANY>(nearest[k]);
-                        improved = true;
-                    }
-                }};
-            }
             // Each of the leaf's triangles against the rays `8 · $row + i` of `$hits` at
             // once, by `$test` over the rays' constants in `$row_lanes` (which share the
-            // axes of ray `8 · $row`).
+            // axes of ray `8 · $row`), `$lanes` reading the test's lanes. Each hit of a ray
+            // still searching is kept if nearest (closest hit), or ends the ray's search
+            // (any hit, which also clears its bit in `$hits`).
             macro_rules! row_tests {
                 ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $lanes:ident) => {{
                     let [kx, ky, kz] = axes[$row * 8];
@@ -524,7 +487,30 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                             let (mask, row_hits) =
                                 unsafe { $test(block, l, &row, $row_lanes(&t_tri)) };
                             let slot = b * BLOCK as u32 + l as u32;
-                            take_hits!($row, mask, $hits, row_hits, $lanes, slot);
+                            let mut m = mask & $hits;
+                            while m != 0 {
+                                let i = m.trailing_zeros() as usize;
+                                m &= m - 1;
+                                let k = $row * 8 + i;
+                                if ANY {
+                                    any[k] = true;
+                                    nearest[k].t = f32::NEG_INFINITY;
+                                    $hits &= !(1 << i);
+                                    live -= 1;
+                                } else {
+                                    // SAFETY: as above.
+                                    let t = unsafe { $lanes(row_hits.t) }[i];
+                                    if !nearest[k].improves(t, slot) {
+                                        continue;
+                                    }
+                                    nearest[k] = Nearest { t, slot };
+                                    // SAFETY: as above.
+                                    found[k] = Some(unsafe { row_hits.hit(i) });
+                                }
+                                t_box.0[k / 8][k % 8] = nearest[k].horizon();
+                                t_tri.0[k / 8][k % 8] = t_triangle::<ANY>(nearest[k]);
+                                improved = true;
+                            }
                         }
                     }
                 }};

@@ -667,7 +667,9 @@ fn exact_edges(
     sheared: [__m128; 6],
     (u, v, w): (__m128, __m128, __m128),
 ) -> (__m128, __m128, __m128) {
-    let (u, v, w) = exact_edge_lanes(lanes4(on_edge), sheared.map(lanes4), [u, v, w].map(lanes4));
+    // SAFETY: SSE is part of x86-64.
+    let mask = unsafe { _mm_movemask_ps(on_edge) } as u32;
+    let (u, v, w) = exact_edge_lanes(mask, sheared.map(lanes4), [u, v, w].map(lanes4));
     // SAFETY: each array holds four floats.
     unsafe {
         (
@@ -692,7 +694,8 @@ unsafe fn exact_edges8(
 ) -> (__m256, __m256, __m256) {
     // SAFETY: AVX2 is enabled in this function.
     let lanes = |x| unsafe { lanes8(x) };
-    let (u, v, w) = exact_edge_lanes(lanes(on_edge), sheared.map(lanes), [u, v, w].map(lanes));
+    let mask = _mm256_movemask_ps(on_edge) as u32;
+    let (u, v, w) = exact_edge_lanes(mask, sheared.map(lanes), [u, v, w].map(lanes));
     // SAFETY: each array holds eight floats.
     unsafe {
         (
@@ -703,15 +706,16 @@ unsafe fn exact_edges8(
     }
 }
 
-/// The edge functions `[u, v, w]`, recomputed in float64 in the lanes set in `mask`.
+/// The edge functions `[u, v, w]`, recomputed in float64 in the lanes whose bit is set
+/// in `mask`.
 #[inline(always)]
 pub(crate) fn exact_edge_lanes<const N: usize>(
-    mask: [f32; N],
+    mask: u32,
     [ax, ay, bx, by, cx, cy]: [[f32; N]; 6],
     [mut u, mut v, mut w]: [[f32; N]; 3],
 ) -> ([f32; N], [f32; N], [f32; N]) {
     for lane in 0..N {
-        if mask[lane].to_bits() != 0 {
+        if mask >> lane & 1 == 1 {
             (u[lane], v[lane], w[lane]) =
                 edge_functions_f64(ax[lane], ay[lane], bx[lane], by[lane], cx[lane], cy[lane]);
         }

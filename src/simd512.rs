@@ -133,14 +133,7 @@ unsafe fn exact_edges(
 ) -> (__m512, __m512, __m512) {
     // SAFETY: AVX-512F is enabled in this function.
     let lanes = |x| unsafe { lanes16(x) };
-    let mask = std::array::from_fn(|lane| {
-        f32::from_bits(if on_edge >> lane & 1 == 1 {
-            u32::MAX
-        } else {
-            0
-        })
-    });
-    let (u, v, w) = exact_edge_lanes(mask, sheared.map(lanes), [u, v, w].map(lanes));
+    let (u, v, w) = exact_edge_lanes(bits(on_edge), sheared.map(lanes), [u, v, w].map(lanes));
     // SAFETY: each array holds sixteen floats.
     unsafe {
         (
