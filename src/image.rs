@@ -5,7 +5,8 @@
 //! PFM it is the linear value as float32. Files are written to a temporary name beside the
 //! target and renamed, so a failed or interrupted job never leaves a partial image.
 
-use std::io::{self, Write};
+use std::borrow::Cow;
+use std::io::{self, IoSlice, Write};
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -85,28 +86,37 @@ impl Image {
         self.file_parts().concat()
     }
 
-    /// The file contents in consecutive parts: the header, then the pixels (in bands of
-    /// rows for `P3`, formatted in parallel: a full-HD image is 25 MB of text).
-    fn file_parts(&self) -> Vec<Vec<u8>> {
+    /// The file contents in consecutive parts: the header, then the pixels. Pixel data
+    /// already in file form is borrowed, not copied: `P6` bytes whole, PFM rows one by one
+    /// (bottom row first) on little-endian machines. `P3` text is formatted in parallel in
+    /// bands of rows (a full-HD image is 25 MB of text).
+    fn file_parts(&self) -> Vec<Cow<'_, [u8]>> {
         let (w, h) = (self.width as usize, self.height as usize);
         match (&self.pixels, self.format) {
-            (Pixels::Rgb8(bytes), OutputFormat::Ppm(PpmStyle::Binary)) => {
-                vec![format!("P6\n{w} {h}\n255\n").into_bytes(), bytes.clone()]
-            }
+            (Pixels::Rgb8(bytes), OutputFormat::Ppm(PpmStyle::Binary)) => vec![
+                Cow::Owned(format!("P6\n{w} {h}\n255\n").into_bytes()),
+                Cow::Borrowed(bytes.as_slice()),
+            ],
             (Pixels::Rgb8(bytes), _) => {
-                let mut parts = vec![format!("P3\n{w} {h}\n255\n").into_bytes()];
-                parts.par_extend(bytes.par_chunks(3 * w.max(1) * 32).map(plain_text));
+                let mut parts = vec![Cow::Owned(format!("P3\n{w} {h}\n255\n").into_bytes())];
+                parts.par_extend(
+                    bytes
+                        .par_chunks(3 * w.max(1) * 32)
+                        .map(|band| Cow::Owned(plain_text(band))),
+                );
                 parts
             }
             (Pixels::RgbF32(floats), _) => {
-                let mut data = Vec::with_capacity(floats.len() * 4);
+                // The scale -1.0 declares little-endian floats.
+                let mut parts = vec![Cow::Owned(format!("PF\n{w} {h}\n-1.0\n").into_bytes())];
                 // PFM stores the bottom row first.
-                for row in floats.chunks_exact(w.max(1) * 3).rev() {
-                    for value in row {
-                        data.extend_from_slice(&value.to_le_bytes());
-                    }
-                }
-                vec![format!("PF\n{w} {h}\n-1.0\n").into_bytes(), data]
+                parts.extend(
+                    floats
+                        .chunks_exact(w.max(1) * 3)
+                        .rev()
+                        .map(little_endian_bytes),
+                );
+                parts
             }
         }
     }
@@ -114,6 +124,20 @@ impl Image {
     /// Writes the image to `path` atomically (see [`write_atomically`]).
     pub fn write(&self, path: &Path) -> io::Result<()> {
         write_parts_atomically(path, &self.file_parts())
+    }
+}
+
+/// The bytes of `floats` in little-endian order: the floats' own memory where that is
+/// their order.
+fn little_endian_bytes(floats: &[f32]) -> Cow<'_, [u8]> {
+    if cfg!(target_endian = "little") {
+        // SAFETY: f32 has no padding and every byte of it is initialized; u8 needs no
+        // alignment; the length covers exactly the floats' memory.
+        Cow::Borrowed(unsafe {
+            std::slice::from_raw_parts(floats.as_ptr().cast::<u8>(), std::mem::size_of_val(floats))
+        })
+    } else {
+        Cow::Owned(floats.iter().flat_map(|v| v.to_le_bytes()).collect())
     }
 }
 
@@ -435,16 +459,35 @@ pub fn write_parts_atomically(path: &Path, parts: &[impl AsRef<[u8]>]) -> io::Re
     let temporary = folder.join(temporary_name);
     let write = || -> io::Result<()> {
         let mut file = std::fs::File::create(&temporary)?;
-        for part in parts {
-            file.write_all(part.as_ref())?;
-        }
-        Ok(())
+        write_all_vectored(&mut file, parts)
     };
     let result = write().and_then(|()| std::fs::rename(&temporary, path));
     if result.is_err() {
         let _ = std::fs::remove_file(&temporary);
     }
     result
+}
+
+/// Writes every part, in order, with as few system calls as the parts allow (a PFM
+/// image is one part per row).
+fn write_all_vectored(file: &mut impl Write, parts: &[impl AsRef<[u8]>]) -> io::Result<()> {
+    // Linux takes up to 1024 slices a call (std passes at most the system's limit).
+    const SLICES_PER_CALL: usize = 512;
+    for group in parts.chunks(SLICES_PER_CALL) {
+        let mut slices: Vec<IoSlice<'_>> = group.iter().map(|p| IoSlice::new(p.as_ref())).collect();
+        let mut remaining = &mut slices[..];
+        // Drops leading empty parts: a call given only empty parts would write nothing.
+        IoSlice::advance_slices(&mut remaining, 0);
+        while !remaining.is_empty() {
+            match file.write_vectored(remaining) {
+                Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
+                Ok(n) => IoSlice::advance_slices(&mut remaining, n),
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -529,6 +572,74 @@ mod tests {
             );
             assert_eq!(decoded.pixels[0], [0.0; 3]);
         }
+    }
+
+    /// A writer that takes at most `limit` bytes a call and is interrupted every third
+    /// call, as a pipe or a signal may do.
+    struct Trickle {
+        written: Vec<u8>,
+        limit: usize,
+        calls: usize,
+    }
+
+    impl Write for Trickle {
+        fn write(&mut self, bytes: &[u8]) -> io::Result<usize> {
+            self.calls += 1;
+            if self.calls.is_multiple_of(3) {
+                return Err(io::ErrorKind::Interrupted.into());
+            }
+            let n = bytes.len().min(self.limit);
+            self.written.extend_from_slice(&bytes[..n]);
+            Ok(n)
+        }
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn every_part_is_written_whole_and_in_order_however_the_writer_splits_it() {
+        // More parts than one call takes, some empty, of uneven lengths.
+        let parts: Vec<Vec<u8>> = (0..1500u32)
+            .map(|i| (0..i % 11).map(|j| (i * 7 + j) as u8).collect())
+            .collect();
+        for limit in [1, 5, 64, usize::MAX] {
+            let mut writer = Trickle {
+                written: Vec::new(),
+                limit,
+                calls: 0,
+            };
+            write_all_vectored(&mut writer, &parts).unwrap();
+            assert_eq!(
+                writer.written,
+                parts.concat(),
+                "at most {limit} bytes a call"
+            );
+        }
+    }
+
+    #[test]
+    fn a_tall_pfm_file_holds_every_row_bottom_first() {
+        // 1100 rows: more rows than one system call is given.
+        let (width, height) = (3, 1100);
+        let mut image = Image::new(width, height, OutputFormat::Pfm, Encoding::Linear);
+        for y in 0..height {
+            for x in 0..width {
+                image.set(x, y, [y as f64, x as f64, 0.5]);
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tall.pfm");
+        image.write(&path).unwrap();
+        let decoded = read(&path).unwrap();
+        assert_eq!((decoded.width, decoded.height), (width, height));
+        for y in 0..height {
+            for x in 0..width {
+                let pixel = decoded.pixels[(y * width + x) as usize];
+                assert_eq!(pixel, [f64::from(y), f64::from(x), 0.5], "({x}, {y})");
+            }
+        }
+        assert_eq!(std::fs::read(&path).unwrap(), image.to_bytes());
     }
 
     #[test]
