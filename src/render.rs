@@ -88,29 +88,42 @@ impl View {
     }
 
     /// [`View::ray`] for sample `s` of each pixel `(x, y0 + dy)` of `pixels`, into `out`:
-    /// the same rays, computed several at a time when the camera is a pinhole and the
-    /// sampler takes a fixed offset (every pixel's `u` and `v` then come from tables).
+    /// the same rays, computed several at a time when the camera is a pinhole (every
+    /// pixel's `u` and `v` from the tables, or from its sample's offset, then the
+    /// directions four at a time).
     pub fn rays(&self, pixels: &[(u32, u32)], y0: u32, s: u32, out: &mut [Ray]) {
         const MOST: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
+        if self.camera.has_lens() || pixels.len() > MOST {
+            for (ray, &(x, dy)) in out.iter_mut().zip(pixels) {
+                *ray = self.ray(x, y0 + dy, s);
+            }
+            return;
+        }
+        let (mut u, mut v) = ([0.0; MOST], [0.0; MOST]);
         match &self.screen {
-            Some((columns, rows)) if !self.camera.has_lens() && pixels.len() <= MOST => {
-                let (mut u, mut v) = ([0.0; MOST], [0.0; MOST]);
+            Some((columns, rows)) => {
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
                     u[i] = columns[x as usize];
                     v[i] = rows[(y0 + dy) as usize];
                 }
-                let n = pixels.len();
-                self.camera.pinhole_rays(&u[..n], &v[..n], out);
-                for ray in out.iter_mut() {
-                    ray.tmin = self.tmin;
-                    ray.tmax = self.tmax;
+            }
+            None => {
+                // Offsets first, then coordinates: the divisions of one pixel no longer
+                // wait for its hashes, and overlap with other pixels'.
+                for (i, &(x, dy)) in pixels.iter().enumerate() {
+                    (u[i], v[i]) = self.sampler.pixel_offset(x, y0 + dy, s);
+                }
+                for (i, &(x, dy)) in pixels.iter().enumerate() {
+                    u[i] = self.camera.screen_u(x, u[i]);
+                    v[i] = self.camera.screen_v(y0 + dy, v[i]);
                 }
             }
-            _ => {
-                for (ray, &(x, dy)) in out.iter_mut().zip(pixels) {
-                    *ray = self.ray(x, y0 + dy, s);
-                }
-            }
+        }
+        let n = pixels.len();
+        self.camera.pinhole_rays(&u[..n], &v[..n], out);
+        for ray in out.iter_mut() {
+            ray.tmin = self.tmin;
+            ray.tmax = self.tmax;
         }
     }
 }
@@ -243,14 +256,19 @@ mod tests {
 
     #[test]
     fn rays_of_a_group_are_the_rays_one_by_one() {
-        // The table-and-vector path (pinhole, fixed offset) and the ray-by-ray path
-        // (random offsets, a lens), for groups of every size up to a packet's.
+        // The vector path (pinhole; fixed offsets from the tables, then random and
+        // stratified offsets) and the ray-by-ray path (a lens), for groups of every size
+        // up to a packet's.
         let camera = r#""camera": {"look_from": [1, 2, 3], "look_at": [0, 0.5, 0], "vfov": 50"#;
         let manifests = [
             format!(r#"{{"image": {{"width": 37, "height": 23}}, {camera}}}}}"#),
             format!(
                 r#"{{"image": {{"width": 37, "height": 23}}, {camera}}},
                     "sampler": {{"type": "independent", "spp": 3, "seed": 5}}}}"#
+            ),
+            format!(
+                r#"{{"image": {{"width": 37, "height": 23}}, {camera}}},
+                    "sampler": {{"type": "stratified", "spp": 6, "seed": 2}}}}"#
             ),
             format!(
                 r#"{{"image": {{"width": 37, "height": 23}}, {camera}, "aperture": 0.2, "focus_distance": 3}}}}"#
