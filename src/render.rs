@@ -92,14 +92,13 @@ impl View {
     /// pixel's `u` and `v` from the tables, or from its sample's offset, then the
     /// directions four at a time).
     pub fn rays(&self, pixels: &[(u32, u32)], y0: u32, s: u32, out: &mut [Ray]) {
-        const MOST: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
-        if self.camera.has_lens() || pixels.len() > MOST {
+        if self.camera.has_lens() || pixels.len() > GROUP {
             for (ray, &(x, dy)) in out.iter_mut().zip(pixels) {
                 *ray = self.ray(x, y0 + dy, s);
             }
             return;
         }
-        let (mut u, mut v) = ([0.0; MOST], [0.0; MOST]);
+        let (mut u, mut v) = ([0.0; GROUP], [0.0; GROUP]);
         match &self.screen {
             Some((columns, rows)) => {
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
@@ -188,6 +187,29 @@ pub fn render<T: Tracer>(
 /// Side of the square groups of pixels whose rays are traced together (one packet).
 pub const PACKET_SIDE: u32 = 8;
 
+/// Pixels of a group: at most [`PACKET_SIDE`]².
+pub const GROUP: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
+
+/// The groups of a band `width` pixels wide and `rows` rows high, in render order: square
+/// groups of [`PACKET_SIDE`] (smaller at the right and bottom edges), left to right, each
+/// top to bottom, each group's pixels `(x, row in the band)` row by row, and how many.
+pub fn groups(width: u32, rows: u32) -> impl Iterator<Item = ([(u32, u32); GROUP], usize)> {
+    let side = PACKET_SIDE as usize;
+    (0..width).step_by(side).flat_map(move |x0| {
+        (0..rows).step_by(side).map(move |dy0| {
+            let mut pixels = [(0u32, 0u32); GROUP];
+            let mut n = 0;
+            for dy in dy0..(dy0 + PACKET_SIDE).min(rows) {
+                for x in x0..(x0 + PACKET_SIDE).min(width) {
+                    pixels[n] = (x, dy);
+                    n += 1;
+                }
+            }
+            (pixels, n)
+        })
+    })
+}
+
 /// Renders every pixel of `image` with one integrator, specialized at compile time. Rays
 /// go to the integrator one packet at a time: the same sample of an 8 × 8 group of
 /// pixels, so that they are coherent.
@@ -200,12 +222,10 @@ pub fn render_with<T: Tracer, I: Integrator>(
 ) {
     let width = image.width;
     let spp = view.spp();
-    const GROUP: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
     image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
         let rows = band.rows();
         // One group's buffers, reused by every group (each ray is written before use):
         // nothing is allocated per group.
-        let mut pixels = [(0u32, 0u32); GROUP];
         let unused = Ray {
             origin: DVec3::ZERO,
             direction: DVec3::Z,
@@ -214,36 +234,27 @@ pub fn render_with<T: Tracer, I: Integrator>(
         };
         let mut rays = [unused; GROUP];
         let mut values = [[0.0f64; 3]; GROUP];
-        for x0 in (0..width).step_by(PACKET_SIDE as usize) {
-            for dy0 in (0..rows).step_by(PACKET_SIDE as usize) {
-                let mut n = 0;
-                for dy in dy0..(dy0 + PACKET_SIDE).min(rows) {
-                    for x in x0..(x0 + PACKET_SIDE).min(width) {
-                        pixels[n] = (x, dy);
-                        n += 1;
+        for (pixels, n) in groups(width, rows) {
+            if spp == 1 {
+                view.rays(&pixels[..n], band.y0, 0, &mut rays[..n]);
+                integrator.values(scene, &rays[..n], &mut values[..n]);
+                for (&(x, dy), value) in pixels[..n].iter().zip(&values) {
+                    band.set(x, dy, *value);
+                }
+                continue;
+            }
+            let mut sums = [[0.0f64; 3]; GROUP];
+            for s in 0..spp {
+                view.rays(&pixels[..n], band.y0, s, &mut rays[..n]);
+                integrator.values(scene, &rays[..n], &mut values[..n]);
+                for (sum, value) in sums.iter_mut().zip(&values[..n]) {
+                    for c in 0..3 {
+                        sum[c] += value[c];
                     }
                 }
-                if spp == 1 {
-                    view.rays(&pixels[..n], band.y0, 0, &mut rays[..n]);
-                    integrator.values(scene, &rays[..n], &mut values[..n]);
-                    for (&(x, dy), value) in pixels[..n].iter().zip(&values) {
-                        band.set(x, dy, *value);
-                    }
-                    continue;
-                }
-                let mut sums = [[0.0f64; 3]; GROUP];
-                for s in 0..spp {
-                    view.rays(&pixels[..n], band.y0, s, &mut rays[..n]);
-                    integrator.values(scene, &rays[..n], &mut values[..n]);
-                    for (sum, value) in sums.iter_mut().zip(&values[..n]) {
-                        for c in 0..3 {
-                            sum[c] += value[c];
-                        }
-                    }
-                }
-                for (&(x, dy), sum) in pixels[..n].iter().zip(&sums) {
-                    band.set(x, dy, sum.map(|c| c / f64::from(spp)));
-                }
+            }
+            for (&(x, dy), sum) in pixels[..n].iter().zip(&sums) {
+                band.set(x, dy, sum.map(|c| c / f64::from(spp)));
             }
         }
         progress(u64::from(rows) * u64::from(width));
@@ -253,6 +264,27 @@ pub fn render_with<T: Tracer, I: Integrator>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn groups_cover_every_pixel_of_a_band_once_in_squares() {
+        for (width, rows) in [(1, 1), (8, 8), (37, 16), (16, 5), (9, 17)] {
+            let mut seen = vec![0; (width * rows) as usize];
+            for (pixels, n) in groups(width, rows) {
+                assert!(n > 0);
+                let (x0, y0) = pixels[0];
+                for &(x, y) in &pixels[..n] {
+                    assert!(x < width && y < rows, "{width}x{rows}: ({x}, {y})");
+                    // Within one aligned square of the packet's side.
+                    assert_eq!(
+                        (x / PACKET_SIDE, y / PACKET_SIDE),
+                        (x0 / PACKET_SIDE, y0 / PACKET_SIDE)
+                    );
+                    seen[(y * width + x) as usize] += 1;
+                }
+            }
+            assert!(seen.iter().all(|&c| c == 1), "{width}x{rows}: {seen:?}");
+        }
+    }
 
     #[test]
     fn rays_of_a_group_are_the_rays_one_by_one() {

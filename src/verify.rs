@@ -1,6 +1,7 @@
 //! `raybatch verify`: every camera ray of a manifest (every pixel, every sample) traced by
 //! raybatch and by the Embree reference, closest hit only, and the distances compared:
-//! hit-mask agreement, relative depth error, and the two trace times side by side.
+//! hit-mask agreement, relative depth error, and the two trace times side by side (the rays
+//! sent as the renderer sends them, and made before the clocks start).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -13,8 +14,9 @@ use crate::embree::EmbreeScene;
 use crate::error::{Error, JobError};
 use crate::manifest::Manifest;
 use crate::mesh::MeshCache;
-use crate::render::View;
-use crate::scene::{Scene, SceneGeometry, Tracer};
+use crate::ray::Ray;
+use crate::render::{GROUP, TILE, View, groups};
+use crate::scene::{Hit, Scene, SceneGeometry, Tracer};
 
 /// The outcome of verifying one manifest.
 #[derive(Debug, Clone)]
@@ -84,8 +86,8 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
     let build_embree_s = start.elapsed().as_secs_f64();
 
     let view = View::new(&manifest);
-    let (ours_t, trace_raybatch_s) = trace_all(&ours, &view, &manifest);
-    let (reference_t, trace_embree_s) = trace_all(&reference, &view, &manifest);
+    let (ours_t, reference_t, trace_raybatch_s, trace_embree_s) =
+        trace_both(&ours, &reference, &view, &manifest);
     let as_option = |t: f64| (!t.is_nan()).then_some(t);
     let depth = DepthComparison::from_pairs(
         ours_t
@@ -106,22 +108,65 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
     })
 }
 
-/// The closest-hit distance of every camera ray (NaN for a miss), row by row, and the
-/// seconds it took.
-fn trace_all<T: Tracer>(tracer: &T, view: &View, manifest: &Manifest) -> (Vec<f64>, f64) {
-    let (width, spp) = (manifest.width, manifest.sampler.spp);
-    let row = width as usize * spp as usize;
-    let mut t = vec![f64::NAN; row * manifest.height as usize];
-    let start = Instant::now();
-    t.par_chunks_mut(row).enumerate().for_each(|(y, out)| {
-        for x in 0..width {
-            for s in 0..spp {
-                let ray = view.ray(x, y as u32, s);
-                if let Some(hit) = tracer.closest_hit(&ray) {
-                    out[(x * spp + s) as usize] = hit.t;
+/// Rays made and traced at a time: their rays and hits take tens of megabytes.
+const RAYS_PER_ROUND: usize = 1 << 19;
+
+/// The closest-hit distance of every camera ray (NaN for a miss) by each tracer, the same
+/// rays in the same order, and the seconds each spent tracing. The rays go as the renderer
+/// sends them, the same sample of each group of pixels together ([`Tracer::closest_hits`]:
+/// our packets, Embree's coherent streams), in rounds of bands of rows: each round's rays
+/// are made first, then traced by one tracer and by the other, only the tracing timed.
+fn trace_both<A: Tracer, B: Tracer>(
+    ours: &A,
+    reference: &B,
+    view: &View,
+    manifest: &Manifest,
+) -> (Vec<f64>, Vec<f64>, f64, f64) {
+    let (width, height, spp) = (manifest.width, manifest.height, view.spp());
+    let rays_per_band = (width * TILE * spp) as usize;
+    let bands_per_round = (RAYS_PER_ROUND / rays_per_band.max(1)).max(1) as u32;
+    let (mut ours_t, mut reference_t) = (Vec::new(), Vec::new());
+    let (mut ours_s, mut reference_s) = (0.0, 0.0);
+    let bands = height.div_ceil(TILE);
+    for first in (0..bands).step_by(bands_per_round as usize) {
+        // Each band's rays in render order.
+        let round: Vec<Vec<Ray>> = (first..(first + bands_per_round).min(bands))
+            .into_par_iter()
+            .map(|band| {
+                let y0 = band * TILE;
+                let rows = TILE.min(height - y0);
+                let mut rays = Vec::with_capacity((width * rows * spp) as usize);
+                let mut group = [view.ray(0, 0, 0); GROUP];
+                for (pixels, n) in groups(width, rows) {
+                    for s in 0..spp {
+                        view.rays(&pixels[..n], y0, s, &mut group[..n]);
+                        rays.extend_from_slice(&group[..n]);
+                    }
                 }
-            }
+                rays
+            })
+            .collect();
+        ours_s += trace_round(ours, &round, &mut ours_t);
+        reference_s += trace_round(reference, &round, &mut reference_t);
+    }
+    (ours_t, reference_t, ours_s, reference_s)
+}
+
+/// Traces a round's rays a group at a time, each band on its own thread, and appends their
+/// distances to `t`; returns the seconds spent tracing.
+fn trace_round<T: Tracer>(tracer: &T, round: &[Vec<Ray>], t: &mut Vec<f64>) -> f64 {
+    let mut hits: Vec<Vec<Option<Hit>>> = round.iter().map(|rays| vec![None; rays.len()]).collect();
+    let start = Instant::now();
+    hits.par_iter_mut().zip(round).for_each(|(hits, rays)| {
+        for (rays, hits) in rays.chunks(GROUP).zip(hits.chunks_mut(GROUP)) {
+            tracer.closest_hits(rays, hits);
         }
     });
-    (t, start.elapsed().as_secs_f64())
+    let seconds = start.elapsed().as_secs_f64();
+    t.extend(
+        hits.iter()
+            .flatten()
+            .map(|hit| hit.map_or(f64::NAN, |hit| hit.t)),
+    );
+    seconds
 }
