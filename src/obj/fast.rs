@@ -18,7 +18,8 @@
 //! many elements come before it, so it keeps negative indices relative to its own start
 //! and notes the furthest reference either way; once the chunks' counts are summed, the
 //! references are checked and resolved. A last pass numbers each object's vertices in
-//! order of first use, as `tobj` does.
+//! order of first use, as `tobj` does: in parallel over the chunks when the file is one
+//! object, else in one pass.
 
 use std::ops::Range;
 
@@ -505,8 +506,120 @@ fn append_digits(text: &[u8], mut value: u64, limit: u64) -> Option<(u64, usize)
 }
 
 /// One geometry: objects in file order, each object's vertices numbered in order of first
-/// use, polygons as fans from their first corner.
+/// use, polygons as fans from their first corner. A file of one object (every `o` or `g`
+/// before the first face, as in most large files) is numbered in parallel.
 fn assemble(chunks: &[Chunk], vertices: usize) -> MeshFile {
+    let first_face_chunk = chunks.iter().position(|c| !c.arities.is_empty());
+    let one_object = first_face_chunk.is_none_or(|first| {
+        chunks[first].breaks.iter().all(|&b| b == 0)
+            && chunks[first + 1..].iter().all(|c| c.breaks.is_empty())
+    });
+    if one_object {
+        assemble_one_object(chunks, vertices)
+    } else {
+        assemble_in_order(chunks, vertices)
+    }
+}
+
+/// Not yet assigned: no chunk owns the vertex, or its owner has not numbered it.
+const UNSET: u32 = u32::MAX;
+
+/// [`assemble`] for a file of one object, in parallel over the chunks. A vertex's index is
+/// the number of distinct vertices first used before it. Each vertex belongs to the first
+/// chunk that uses it; each chunk numbers its own vertices in order of first use; the
+/// counts of the chunks before it then give each chunk's first index.
+fn assemble_one_object(chunks: &[Chunk], vertices: usize) -> MeshFile {
+    use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
+    let all: Vec<[f32; 3]> = chunks
+        .iter()
+        .flat_map(|c| c.positions.iter().copied())
+        .collect();
+    let owner: Vec<AtomicU32> = (0..vertices).map(|_| AtomicU32::new(UNSET)).collect();
+    chunks.par_iter().enumerate().for_each(|(c, chunk)| {
+        let c = c as u32;
+        for &v in &chunk.corners {
+            // Loaded first: most corners repeat a vertex this chunk has already claimed.
+            if owner[v as usize].load(Relaxed) > c {
+                owner[v as usize].fetch_min(c, Relaxed);
+            }
+        }
+    });
+    // Each chunk's own vertices, in order of first use: their index within the chunk is
+    // kept in `local` (written only by the owner).
+    let local: Vec<AtomicU32> = (0..vertices).map(|_| AtomicU32::new(UNSET)).collect();
+    let owned: Vec<Vec<u32>> = chunks
+        .par_iter()
+        .enumerate()
+        .map(|(c, chunk)| {
+            let mut own = Vec::new();
+            for &v in &chunk.corners {
+                let v = v as usize;
+                if owner[v].load(Relaxed) == c as u32 && local[v].load(Relaxed) == UNSET {
+                    local[v].store(own.len() as u32, Relaxed);
+                    own.push(v as u32);
+                }
+            }
+            own
+        })
+        .collect();
+    let mut first_index = Vec::with_capacity(chunks.len());
+    let mut total = 0u32;
+    for own in &owned {
+        first_index.push(total);
+        total += own.len() as u32;
+    }
+    let mut positions = vec![[0f32; 3]; total as usize];
+    let mut rest = positions.as_mut_slice();
+    let mut position_parts = Vec::with_capacity(chunks.len());
+    for own in &owned {
+        let (part, tail) = rest.split_at_mut(own.len());
+        position_parts.push(part);
+        rest = tail;
+    }
+    position_parts
+        .into_par_iter()
+        .zip(&owned)
+        .for_each(|(part, own)| {
+            for (p, &v) in part.iter_mut().zip(own) {
+                *p = all[v as usize];
+            }
+        });
+    let fans = |chunk: &Chunk| chunk.arities.iter().map(|&a| a as usize - 2).sum::<usize>();
+    let mut triangles = vec![[0u32; 3]; chunks.iter().map(fans).sum()];
+    let mut rest = triangles.as_mut_slice();
+    let mut triangle_parts = Vec::with_capacity(chunks.len());
+    for chunk in chunks {
+        let (part, tail) = rest.split_at_mut(fans(chunk));
+        triangle_parts.push(part);
+        rest = tail;
+    }
+    triangle_parts
+        .into_par_iter()
+        .zip(chunks)
+        .for_each(|(part, chunk)| {
+            let index = |v: u32| {
+                let v = v as usize;
+                first_index[owner[v].load(Relaxed) as usize] + local[v].load(Relaxed)
+            };
+            let mut out = part.iter_mut();
+            let mut corners = chunk.corners.as_slice();
+            for &arity in &chunk.arities {
+                let (face, tail) = corners.split_at(arity as usize);
+                corners = tail;
+                let first = index(face[0]);
+                for pair in face[1..].windows(2) {
+                    *out.next().expect("counted above") = [first, index(pair[0]), index(pair[1])];
+                }
+            }
+        });
+    one_geometry(Geometry {
+        positions,
+        triangles,
+    })
+}
+
+/// [`assemble`] in one pass over the faces, for any number of objects.
+fn assemble_in_order(chunks: &[Chunk], vertices: usize) -> MeshFile {
     let all: Vec<[f32; 3]> = chunks
         .iter()
         .flat_map(|c| c.positions.iter().copied())
@@ -552,6 +665,11 @@ fn assemble(chunks: &[Chunk], vertices: usize) -> MeshFile {
             faces_in_object = 0;
         }
     }
+    one_geometry(geometry)
+}
+
+/// A file of one geometry, placed as it is.
+fn one_geometry(geometry: Geometry) -> MeshFile {
     MeshFile {
         geometries: vec![geometry],
         instances: vec![Instance {

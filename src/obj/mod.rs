@@ -148,6 +148,30 @@ mod tests {
     }
 
     #[test]
+    fn files_of_one_object_numbered_in_parallel_read_as_tobj_reads_them() {
+        // Without `o` and `g` lines each file is one object, whose vertices the fast
+        // reader numbers in parallel over chunks of a few lines.
+        let mut fast = 0;
+        for seed in 0..2000 {
+            let text: String = random_obj(seed)
+                .lines()
+                .filter(|line| !line.starts_with(['o', 'g']))
+                .flat_map(|line| [line, "\n"])
+                .collect();
+            let Ok(reference) = parse_with_tobj(text.as_bytes(), Path::new("random.obj")) else {
+                continue;
+            };
+            for chunk in [usize::MAX, 1 + seed as usize % 40, 1 + seed as usize % 7] {
+                if let Some(mesh) = fast::parse_in_chunks(text.as_bytes(), chunk) {
+                    fast += 1;
+                    assert_eq!(mesh, reference, "seed {seed}, chunks of {chunk}:\n{text}");
+                }
+            }
+        }
+        assert!(fast > 3000, "only {fast} fast reads");
+    }
+
+    #[test]
     fn the_fast_reader_declines_what_it_does_not_cover() {
         let declined = [
             "v 0 0 0 0.5\n",
