@@ -569,14 +569,7 @@ fn assemble_one_object(chunks: &[Chunk], vertices: usize) -> MeshFile {
         total += own.len() as u32;
     }
     let mut positions = vec![[0f32; 3]; total as usize];
-    let mut rest = positions.as_mut_slice();
-    let mut position_parts = Vec::with_capacity(chunks.len());
-    for own in &owned {
-        let (part, tail) = rest.split_at_mut(own.len());
-        position_parts.push(part);
-        rest = tail;
-    }
-    position_parts
+    split_by_lengths(&mut positions, owned.iter().map(Vec::len))
         .into_par_iter()
         .zip(&owned)
         .for_each(|(part, own)| {
@@ -586,14 +579,7 @@ fn assemble_one_object(chunks: &[Chunk], vertices: usize) -> MeshFile {
         });
     let fans = |chunk: &Chunk| chunk.arities.iter().map(|&a| a as usize - 2).sum::<usize>();
     let mut triangles = vec![[0u32; 3]; chunks.iter().map(fans).sum()];
-    let mut rest = triangles.as_mut_slice();
-    let mut triangle_parts = Vec::with_capacity(chunks.len());
-    for chunk in chunks {
-        let (part, tail) = rest.split_at_mut(fans(chunk));
-        triangle_parts.push(part);
-        rest = tail;
-    }
-    triangle_parts
+    split_by_lengths(&mut triangles, chunks.iter().map(fans))
         .into_par_iter()
         .zip(chunks)
         .for_each(|(part, chunk)| {
@@ -616,6 +602,17 @@ fn assemble_one_object(chunks: &[Chunk], vertices: usize) -> MeshFile {
         positions,
         triangles,
     })
+}
+
+/// `items` cut into consecutive parts of the given lengths (which must not sum past it).
+fn split_by_lengths<T>(mut items: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
+    lengths
+        .map(|len| {
+            let (part, rest) = std::mem::take(&mut items).split_at_mut(len);
+            items = rest;
+            part
+        })
+        .collect()
 }
 
 /// [`assemble`] in one pass over the faces, for any number of objects.
