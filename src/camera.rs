@@ -124,22 +124,39 @@ impl Camera {
     /// [`Camera::screen_v`]); `lens` as for [`Camera::ray`].
     #[inline]
     pub fn ray_at(&self, u: f64, v: f64, lens: (f64, f64)) -> Ray {
+        let ray = self.screen_ray(u, v);
+        match &self.lens {
+            Some(l) => self.through_lens(l, ray.direction, lens),
+            None => ray,
+        }
+    }
+
+    /// The pinhole ray through screen coordinates `(u, v)`, whatever the lens.
+    #[inline(always)]
+    fn screen_ray(&self, u: f64, v: f64) -> Ray {
         let f = &self.frame;
-        let direction = (u * f.right + v * f.up + f.forward).normalize();
-        let mut ray = Ray {
+        Ray {
             origin: f.origin,
-            direction,
+            direction: (u * f.right + v * f.up + f.forward).normalize(),
             tmin: 0.0,
             tmax: f64::INFINITY,
-        };
-        if let Some(l) = &self.lens {
-            let (dx, dy) = concentric_disk(lens.0, lens.1);
-            let focus = f.origin + direction * (l.focus_distance / direction.dot(l.axis));
-            let origin = f.origin + l.radius * (dx * l.lens_x + dy * l.lens_y);
-            ray.origin = origin;
-            ray.direction = (focus - origin).normalize();
         }
-        ray
+    }
+
+    /// The ray from lens point `lens` (of `[0, 1)²`) through the point of the focus plane
+    /// that the pinhole ray of unit `direction` meets.
+    #[inline(always)]
+    fn through_lens(&self, l: &Lens, direction: DVec3, lens: (f64, f64)) -> Ray {
+        let f = &self.frame;
+        let (dx, dy) = concentric_disk(lens.0, lens.1);
+        let focus = f.origin + direction * (l.focus_distance / direction.dot(l.axis));
+        let origin = f.origin + l.radius * (dx * l.lens_x + dy * l.lens_y);
+        Ray {
+            origin,
+            direction: (focus - origin).normalize(),
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        }
     }
 
     /// The rays of a pinhole camera through screen coordinates `(u[i], v[i])`, into
@@ -147,109 +164,277 @@ impl Camera {
     /// computed four at a time with AVX where the CPU has it, so that four rays share each
     /// square root and division.
     pub fn pinhole_rays(&self, u: &[f64], v: &[f64], out: &mut [Ray]) {
+        assert!(
+            self.lens.is_none(),
+            "a camera with a lens takes lens points"
+        );
+        self.rays_at(u, v, &[], out);
+    }
+
+    /// [`Camera::ray_at`] of `(u[i], v[i], lens[i])` for each ray, into `out[i]`: the same
+    /// rays, the pinhole directions four at a time (as [`Camera::pinhole_rays`]), then each
+    /// taken through its lens point.
+    pub fn lens_rays(&self, u: &[f64], v: &[f64], lens: &[(f64, f64)], out: &mut [Ray]) {
+        assert!(lens.len() == out.len() || self.lens.is_none());
+        self.rays_at(u, v, lens, out);
+    }
+
+    /// The rays through `(u[i], v[i])`, and with a lens through `lens[i]` (unread without).
+    fn rays_at(&self, u: &[f64], v: &[f64], lens: &[(f64, f64)], out: &mut [Ray]) {
         assert!(u.len() == out.len() && v.len() == out.len());
         #[cfg(target_arch = "x86_64")]
-        let done = if self.lens.is_none() && std::is_x86_feature_detected!("avx") {
+        let done = if std::is_x86_feature_detected!("avx") {
+            let lens = self.lens.as_ref().map(|l| (l, lens));
             // SAFETY: the CPU has AVX.
-            unsafe { self.pinhole_rays_avx(u, v, out) }
+            unsafe { self.rays_avx(u, v, lens, out) }
         } else {
             0
         };
         #[cfg(not(target_arch = "x86_64"))]
         let done = 0;
-        for ((ray, &u), &v) in out[done..].iter_mut().zip(&u[done..]).zip(&v[done..]) {
-            *ray = self.ray_at(u, v, crate::sampler::CENTER);
+        for (i, ray) in out.iter_mut().enumerate().skip(done) {
+            *ray = self.screen_ray(u[i], v[i]);
+            if let Some(l) = &self.lens {
+                *ray = self.through_lens(l, ray.direction, lens[i]);
+            }
         }
     }
 
-    /// The rays of [`Camera::pinhole_rays`] for the whole groups of four, and how many that
-    /// is: glam's operations in glam's order, none fused, so the same bits as
-    /// [`Camera::ray_at`]. Each direction is stored straight from the vector registers
+    /// The rays of [`Camera::rays_at`] for the whole groups of four, and how many that is:
+    /// the pinhole rays, and with `lens` each taken through its lens point, glam's
+    /// operations in glam's order, none fused, so the same bits as [`Camera::screen_ray`]
+    /// and [`Camera::through_lens`]. Each vector is stored straight from the registers
     /// (reading the lanes back from memory stalled every ray on store forwarding).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
-    unsafe fn pinhole_rays_avx(&self, u: &[f64], v: &[f64], out: &mut [Ray]) -> usize {
+    unsafe fn rays_avx(
+        &self,
+        u: &[f64],
+        v: &[f64],
+        lens: Option<(&Lens, &[(f64, f64)])>,
+        out: &mut [Ray],
+    ) -> usize {
         use std::arch::x86_64::*;
         let f = &self.frame;
-        let lanes = |r: f64, up: f64, forward: f64| {
-            (
-                _mm256_set1_pd(r),
-                _mm256_set1_pd(up),
-                _mm256_set1_pd(forward),
-            )
+        let splat = |v: DVec3| v.to_array().map(|c| _mm256_set1_pd(c));
+        let (right, up, forward, eye) = (
+            splat(f.right),
+            splat(f.up),
+            splat(f.forward),
+            splat(f.origin),
+        );
+        let mul = |a, b| _mm256_mul_pd(a, b);
+        let add = |a, b| _mm256_add_pd(a, b);
+        // glam's `normalize`: `v * (1 / sqrt((x·x + y·y) + z·z))`.
+        let normalize = |[x, y, z]: [__m256d; 3]| {
+            let squared = add(add(mul(x, x), mul(y, y)), mul(z, z));
+            let scale = _mm256_div_pd(_mm256_set1_pd(1.0), _mm256_sqrt_pd(squared));
+            [mul(x, scale), mul(y, scale), mul(z, scale)]
         };
-        let axes = [
-            lanes(f.right.x, f.up.x, f.forward.x),
-            lanes(f.right.y, f.up.y, f.forward.y),
-            lanes(f.right.z, f.up.z, f.forward.z),
-        ];
         let groups = out
             .chunks_exact_mut(4)
             .zip(u.chunks_exact(4))
-            .zip(v.chunks_exact(4));
-        for ((rays, u), v) in groups {
+            .zip(v.chunks_exact(4))
+            .enumerate();
+        for (g, ((rays, u), v)) in groups {
             // SAFETY: each chunk holds four values.
             let (u, v) = unsafe { (_mm256_loadu_pd(u.as_ptr()), _mm256_loadu_pd(v.as_ptr())) };
-            let [x, y, z] = axes.map(|(r, up, forward)| {
-                let sum = _mm256_add_pd(_mm256_mul_pd(u, r), _mm256_mul_pd(v, up));
-                _mm256_add_pd(sum, forward)
-            });
-            let squared = _mm256_add_pd(
-                _mm256_add_pd(_mm256_mul_pd(x, x), _mm256_mul_pd(y, y)),
-                _mm256_mul_pd(z, z),
-            );
-            let scale = _mm256_div_pd(_mm256_set1_pd(1.0), _mm256_sqrt_pd(squared));
-            let (x, y, z) = (
-                _mm256_mul_pd(x, scale),
-                _mm256_mul_pd(y, scale),
-                _mm256_mul_pd(z, scale),
-            );
-            // (x0 y0 x2 y2), (x1 y1 x3 y3), and the z pairs (z0 z1), (z2 z3).
-            let (even, odd) = (_mm256_unpacklo_pd(x, y), _mm256_unpackhi_pd(x, y));
-            let xy = [
-                _mm256_castpd256_pd128(even),
-                _mm256_castpd256_pd128(odd),
-                _mm256_extractf128_pd::<1>(even),
-                _mm256_extractf128_pd::<1>(odd),
-            ];
-            let (z01, z23) = (_mm256_castpd256_pd128(z), _mm256_extractf128_pd::<1>(z));
-            let zs = [
-                z01,
-                _mm_unpackhi_pd(z01, z01),
-                z23,
-                _mm_unpackhi_pd(z23, z23),
-            ];
-            for ((ray, xy), z) in rays.iter_mut().zip(xy).zip(zs) {
-                ray.origin = f.origin;
+            let direction =
+                normalize([0, 1, 2].map(|a| add(add(mul(u, right[a]), mul(v, up[a])), forward[a])));
+            let (origin, direction) = match lens {
+                None => (eye, direction),
+                Some((l, points)) => {
+                    let p = &points[4 * g..4 * g + 4];
+                    let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
+                    let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
+                    // SAFETY: AVX is enabled in this function.
+                    let (dx, dy) = unsafe { concentric_disk_avx(a, b) };
+                    let axis = splat(l.axis);
+                    let dot = add(
+                        add(mul(direction[0], axis[0]), mul(direction[1], axis[1])),
+                        mul(direction[2], axis[2]),
+                    );
+                    let scale = _mm256_div_pd(_mm256_set1_pd(l.focus_distance), dot);
+                    let (lens_x, lens_y, radius) =
+                        (splat(l.lens_x), splat(l.lens_y), _mm256_set1_pd(l.radius));
+                    let focus = [0, 1, 2].map(|a| add(eye[a], mul(direction[a], scale)));
+                    let origin = [0, 1, 2].map(|a| {
+                        add(
+                            eye[a],
+                            mul(radius, add(mul(dx, lens_x[a]), mul(dy, lens_y[a]))),
+                        )
+                    });
+                    let toward = [0, 1, 2].map(|a| _mm256_sub_pd(focus[a], origin[a]));
+                    (origin, normalize(toward))
+                }
+            };
+            for ray in rays.iter_mut() {
                 ray.tmin = 0.0;
                 ray.tmax = f64::INFINITY;
-                let direction = (&mut ray.direction as *mut DVec3).cast::<f64>();
-                // SAFETY: a DVec3 is three f64s, x, y, z in order (`repr(C)`).
-                unsafe {
-                    _mm_storeu_pd(direction, xy);
-                    _mm_store_sd(direction.add(2), z);
-                }
+            }
+            // SAFETY: AVX is enabled in this function.
+            unsafe {
+                store_lanes(rays, origin, |ray| &mut ray.origin);
+                store_lanes(rays, direction, |ray| &mut ray.direction);
             }
         }
         out.len() - out.len() % 4
     }
 }
 
-/// Shirley and Chiu's area-preserving map from the unit square to the unit disk.
+/// Stores lane `i` of `x`, `y` and `z` as the vector `field(&mut rays[i])`, for four rays.
+///
+/// # Safety
+/// Only from a function with AVX enabled.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn store_lanes(
+    rays: &mut [Ray],
+    [x, y, z]: [std::arch::x86_64::__m256d; 3],
+    field: impl Fn(&mut Ray) -> &mut DVec3,
+) {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX is enabled in the caller; a DVec3 is three f64s, x, y, z in order
+    // (`repr(C)`).
+    unsafe {
+        // (x0 y0 x2 y2), (x1 y1 x3 y3), and the z pairs (z0 z1), (z2 z3).
+        let (even, odd) = (_mm256_unpacklo_pd(x, y), _mm256_unpackhi_pd(x, y));
+        let xy = [
+            _mm256_castpd256_pd128(even),
+            _mm256_castpd256_pd128(odd),
+            _mm256_extractf128_pd::<1>(even),
+            _mm256_extractf128_pd::<1>(odd),
+        ];
+        let (z01, z23) = (_mm256_castpd256_pd128(z), _mm256_extractf128_pd::<1>(z));
+        let zs = [
+            z01,
+            _mm_unpackhi_pd(z01, z01),
+            z23,
+            _mm_unpackhi_pd(z23, z23),
+        ];
+        for ((ray, xy), z) in rays.iter_mut().zip(xy).zip(zs) {
+            let vector = (field(ray) as *mut DVec3).cast::<f64>();
+            _mm_storeu_pd(vector, xy);
+            _mm_store_sd(vector.add(2), z);
+        }
+    }
+}
+
+/// [`concentric_disk`] of four points, lane by lane, with the same operations.
+///
+/// # Safety
+/// Only from a function with AVX enabled.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn concentric_disk_avx(
+    a: std::arch::x86_64::__m256d,
+    b: std::arch::x86_64::__m256d,
+) -> (std::arch::x86_64::__m256d, std::arch::x86_64::__m256d) {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX is enabled in the caller.
+    unsafe {
+        let (one, two) = (_mm256_set1_pd(1.0), _mm256_set1_pd(2.0));
+        let x = _mm256_sub_pd(_mm256_mul_pd(two, a), one);
+        let y = _mm256_sub_pd(_mm256_mul_pd(two, b), one);
+        let magnitude = _mm256_castsi256_pd(_mm256_set1_epi64x(i64::MAX));
+        let (ax, ay) = (_mm256_and_pd(x, magnitude), _mm256_and_pd(y, magnitude));
+        // Where |x| > |y|: φ from y/x, the point (x cos φ, x sin φ); elsewhere φ from x/y,
+        // the point (y sin φ, y cos φ).
+        let wide = _mm256_cmp_pd::<_CMP_GT_OQ>(ax, ay);
+        let (r, other) = (_mm256_blendv_pd(y, x, wide), _mm256_blendv_pd(x, y, wide));
+        let phi = _mm256_mul_pd(
+            _mm256_set1_pd(std::f64::consts::FRAC_PI_4),
+            _mm256_div_pd(other, r),
+        );
+        let (sin, cos) = sin_cos_quarter_avx(phi);
+        let first = _mm256_mul_pd(r, _mm256_blendv_pd(sin, cos, wide));
+        let second = _mm256_mul_pd(r, _mm256_blendv_pd(cos, sin, wide));
+        // The centre: x = y = 0 (where 0/0 made φ NaN).
+        let zero = _mm256_setzero_pd();
+        let centre = _mm256_and_pd(
+            _mm256_cmp_pd::<_CMP_EQ_OQ>(x, zero),
+            _mm256_cmp_pd::<_CMP_EQ_OQ>(y, zero),
+        );
+        (
+            _mm256_blendv_pd(first, zero, centre),
+            _mm256_blendv_pd(second, zero, centre),
+        )
+    }
+}
+
+/// [`sin_cos_quarter`] of four angles, with the same operations.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn sin_cos_quarter_avx(
+    phi: std::arch::x86_64::__m256d,
+) -> (std::arch::x86_64::__m256d, std::arch::x86_64::__m256d) {
+    use std::arch::x86_64::*;
+    let f = &INVERSE_FACTORIAL;
+    // SAFETY (every intrinsic below): only called from functions with AVX enabled, into
+    // which it is inlined.
+    unsafe {
+        let p2 = _mm256_mul_pd(phi, phi);
+        let mut sin = _mm256_set1_pd(-f[15]);
+        let mut cos = _mm256_set1_pd(f[16]);
+        for k in (0..7).rev() {
+            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+            sin = _mm256_add_pd(_mm256_set1_pd(sign * f[2 * k + 1]), _mm256_mul_pd(p2, sin));
+            cos = _mm256_add_pd(_mm256_set1_pd(-sign * f[2 * k + 2]), _mm256_mul_pd(p2, cos));
+        }
+        (
+            _mm256_mul_pd(phi, sin),
+            _mm256_add_pd(_mm256_set1_pd(1.0), _mm256_mul_pd(p2, cos)),
+        )
+    }
+}
+
+/// Shirley and Chiu's area-preserving map from the unit square to the unit disk. Its
+/// angle is within a quarter turn of an axis, whose sine and cosine [`sin_cos_quarter`]
+/// gives.
+#[inline(always)]
 fn concentric_disk(a: f64, b: f64) -> (f64, f64) {
     let (x, y) = (2.0 * a - 1.0, 2.0 * b - 1.0);
     if x == 0.0 && y == 0.0 {
         return (0.0, 0.0);
     }
-    let (r, theta) = if x.abs() > y.abs() {
-        (x, std::f64::consts::FRAC_PI_4 * (y / x))
+    if x.abs() > y.abs() {
+        let (sin, cos) = sin_cos_quarter(std::f64::consts::FRAC_PI_4 * (y / x));
+        (x * cos, x * sin)
     } else {
-        (
-            y,
-            std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (x / y),
-        )
-    };
-    (r * theta.cos(), r * theta.sin())
+        // The angle is π/2 − φ: its cosine is sin φ, its sine cos φ.
+        let (sin, cos) = sin_cos_quarter(std::f64::consts::FRAC_PI_4 * (x / y));
+        (y * sin, y * cos)
+    }
+}
+
+/// `1/n!` for `n` in `0..=16`.
+const INVERSE_FACTORIAL: [f64; 17] = {
+    let mut table = [1.0; 17];
+    let mut n = 1;
+    while n < 17 {
+        table[n] = table[n - 1] / n as f64;
+        n += 1;
+    }
+    table
+};
+
+/// `(sin φ, cos φ)` for `|φ| ≤ π/4`, by their Taylor series up to `φ¹⁵` and `φ¹⁶` (the
+/// first terms left out are below 5·10⁻¹⁷ and 3·10⁻¹⁸ there): within a few units in the
+/// last place of the library's, without a call, and so cheap to inline where camera rays
+/// are made.
+#[inline(always)]
+fn sin_cos_quarter(phi: f64) -> (f64, f64) {
+    let f = &INVERSE_FACTORIAL;
+    let p2 = phi * phi;
+    let mut sin = -f[15];
+    let mut cos = f[16];
+    for k in (0..7).rev() {
+        // sin: 1/1! − φ²/3! + …; cos: 1/0! − φ²/2! + …, alternating from the innermost.
+        let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+        sin = sign * f[2 * k + 1] + p2 * sin;
+        cos = -sign * f[2 * k + 2] + p2 * cos;
+    }
+    (phi * sin, 1.0 + p2 * cos)
 }
 
 #[cfg(test)]
@@ -306,11 +491,25 @@ mod tests {
     }
 
     #[test]
-    fn pinhole_rays_are_bit_for_bit_the_rays_one_by_one() {
-        // Frames of every scale and orientation, and runs of every length around the
-        // vector width (the rest goes one by one).
+    fn rays_in_groups_are_bit_for_bit_the_rays_one_by_one() {
+        // Frames of every scale and orientation, pinholes and lenses, and runs of every
+        // length around the vector width (the rest goes one by one). Lens points include
+        // the centre, the diagonals (|x| = |y|) and the square's edges.
         let mut random = crate::test_random::XorShift::new(0x2545_f491_4f6c_dd1d);
         let mut next = || random.unit_f64() * 2.0 - 1.0;
+        let special = [
+            (0.5, 0.5),
+            (0.25, 0.25),
+            (0.75, 0.25),
+            (0.0, 0.0),
+            (0.0, 0.7),
+            (0.3, 0.0),
+        ];
+        let bits = |r: &Ray| {
+            [r.origin, r.direction]
+                .map(|v| v.to_array().map(f64::to_bits))
+                .concat()
+        };
         for scale in [1e-9, 0.37, 1.0, 3e4, 1e12] {
             let mut v3 = || DVec3::new(next(), next(), next()) * scale;
             let frame = CameraFrame {
@@ -319,26 +518,97 @@ mod tests {
                 up: v3(),
                 forward: v3(),
             };
-            let camera = Camera::new(&pinhole(frame), 1920, 1080);
-            for n in 0..=9 {
-                let u: Vec<f64> = (0..n).map(|_| next() * 2.0).collect();
-                let v: Vec<f64> = (0..n).map(|_| next()).collect();
-                let unused = camera.ray_at(0.0, 0.0, (0.5, 0.5));
-                let mut rays = vec![unused; n];
-                camera.pinhole_rays(&u, &v, &mut rays);
-                for i in 0..n {
-                    let one = camera.ray_at(u[i], v[i], (0.5, 0.5));
-                    assert_eq!(
-                        rays[i].origin.to_array().map(f64::to_bits),
-                        one.origin.to_array().map(f64::to_bits)
-                    );
-                    assert_eq!(
-                        rays[i].direction.to_array().map(f64::to_bits),
-                        one.direction.to_array().map(f64::to_bits),
-                        "scale {scale}, ray {i} of {n}"
-                    );
-                    assert_eq!((rays[i].tmin, rays[i].tmax), (one.tmin, one.tmax));
+            let thin_lens = ThinLens {
+                radius: 0.3 * scale,
+                focus_distance: 2.0 * scale,
+            };
+            for lens in [None, Some(thin_lens)] {
+                let camera = Camera::new(&CameraDesc { frame, lens }, 1920, 1080);
+                for n in 0..=9 {
+                    let u: Vec<f64> = (0..n).map(|_| next() * 2.0).collect();
+                    let v: Vec<f64> = (0..n).map(|_| next()).collect();
+                    let points: Vec<(f64, f64)> = (0..n)
+                        .map(|i| {
+                            special
+                                .get(i + n % 3)
+                                .copied()
+                                .unwrap_or((next().abs(), next().abs()))
+                        })
+                        .collect();
+                    let unused = camera.ray_at(0.0, 0.0, (0.5, 0.5));
+                    let mut rays = vec![unused; n];
+                    match lens {
+                        None => camera.pinhole_rays(&u, &v, &mut rays),
+                        Some(_) => camera.lens_rays(&u, &v, &points, &mut rays),
+                    }
+                    for i in 0..n {
+                        let one = camera.ray_at(u[i], v[i], points[i]);
+                        assert_eq!(
+                            bits(&rays[i]),
+                            bits(&one),
+                            "scale {scale}, {lens:?}, ray {i} of {n}"
+                        );
+                        assert_eq!((rays[i].tmin, rays[i].tmax), (one.tmin, one.tmax));
+                    }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn quarter_turn_sines_and_cosines_are_the_library_s_to_within_two_ulps() {
+        let steps = 200_000;
+        for i in 0..=steps {
+            let phi = std::f64::consts::FRAC_PI_4 * (2.0 * f64::from(i) / f64::from(steps) - 1.0);
+            let (sin, cos) = sin_cos_quarter(phi);
+            let close = |ours: f64, library: f64| {
+                (ours - library).abs() <= 2.0 * f64::EPSILON * library.abs()
+            };
+            assert!(
+                close(sin, phi.sin()),
+                "sin {phi}: {sin} against {}",
+                phi.sin()
+            );
+            assert!(
+                close(cos, phi.cos()),
+                "cos {phi}: {cos} against {}",
+                phi.cos()
+            );
+        }
+    }
+
+    #[test]
+    fn the_lens_disk_map_is_shirley_and_chius() {
+        // Against the map written with the library's sine and cosine of the whole angle.
+        let reference = |a: f64, b: f64| {
+            let (x, y) = (2.0 * a - 1.0, 2.0 * b - 1.0);
+            if x == 0.0 && y == 0.0 {
+                return (0.0, 0.0);
+            }
+            let (r, theta) = if x.abs() > y.abs() {
+                (x, std::f64::consts::FRAC_PI_4 * (y / x))
+            } else {
+                (
+                    y,
+                    std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (x / y),
+                )
+            };
+            (r * theta.cos(), r * theta.sin())
+        };
+        let n = 301;
+        for i in 0..n {
+            for j in 0..n {
+                let (a, b) = (
+                    f64::from(i) / f64::from(n - 1),
+                    f64::from(j) / f64::from(n - 1),
+                );
+                let (x, y) = concentric_disk(a, b);
+                let (rx, ry) = reference(a, b);
+                assert!(
+                    (x - rx).abs() <= 1e-15 && (y - ry).abs() <= 1e-15,
+                    "({a}, {b}): ({x}, {y}) against ({rx}, {ry})"
+                );
+                assert!(x.hypot(y) <= 1.0 + 1e-15);
             }
         }
     }

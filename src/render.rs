@@ -88,11 +88,11 @@ impl View {
     }
 
     /// [`View::ray`] for sample `s` of each pixel `(x, y0 + dy)` of `pixels`, into `out`:
-    /// the same rays, computed several at a time when the camera is a pinhole (every
-    /// pixel's `u` and `v` from the tables, or from its sample's offset, then the
-    /// directions four at a time).
+    /// the same rays, computed several at a time (every pixel's `u` and `v` from the tables,
+    /// or from its sample's offset, then the pinhole directions four at a time, then with a
+    /// lens each through its lens point).
     pub fn rays(&self, pixels: &[(u32, u32)], y0: u32, s: u32, out: &mut [Ray]) {
-        if self.camera.has_lens() || pixels.len() > GROUP {
+        if pixels.len() > GROUP {
             for (ray, &(x, dy)) in out.iter_mut().zip(pixels) {
                 *ray = self.ray(x, y0 + dy, s);
             }
@@ -119,7 +119,16 @@ impl View {
             }
         }
         let n = pixels.len();
-        self.camera.pinhole_rays(&u[..n], &v[..n], out);
+        if self.camera.has_lens() {
+            let mut lens = [crate::sampler::CENTER; GROUP];
+            for (point, &(x, dy)) in lens.iter_mut().zip(pixels) {
+                *point = self.sampler.lens(x, y0 + dy, s);
+            }
+            self.camera
+                .lens_rays(&u[..n], &v[..n], &lens[..n], &mut out[..n]);
+        } else {
+            self.camera.pinhole_rays(&u[..n], &v[..n], out);
+        }
         for ray in out.iter_mut() {
             ray.tmin = self.tmin;
             ray.tmax = self.tmax;
@@ -288,9 +297,9 @@ mod tests {
 
     #[test]
     fn rays_of_a_group_are_the_rays_one_by_one() {
-        // The vector path (pinhole; fixed offsets from the tables, then random and
-        // stratified offsets) and the ray-by-ray path (a lens), for groups of every size
-        // up to a packet's.
+        // Fixed offsets from the tables, random and stratified offsets, and a lens with
+        // the centre sample and with random samples, for groups of every size up to a
+        // packet's.
         let camera = r#""camera": {"look_from": [1, 2, 3], "look_at": [0, 0.5, 0], "vfov": 50"#;
         let manifests = [
             format!(r#"{{"image": {{"width": 37, "height": 23}}, {camera}}}}}"#),
@@ -304,6 +313,10 @@ mod tests {
             ),
             format!(
                 r#"{{"image": {{"width": 37, "height": 23}}, {camera}, "aperture": 0.2, "focus_distance": 3}}}}"#
+            ),
+            format!(
+                r#"{{"image": {{"width": 37, "height": 23}}, {camera}, "aperture": 0.2, "focus_distance": 3}},
+                    "sampler": {{"type": "independent", "spp": 3, "seed": 5}}}}"#
             ),
         ];
         for text in &manifests {

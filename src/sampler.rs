@@ -82,7 +82,7 @@ impl Sampler {
     }
 
     /// A point of `[0, 1)²` for the lens; the lens centre `(0.5, 0.5)` for `center`.
-    #[inline]
+    #[inline(always)]
     pub fn lens(&self, x: u32, y: u32, s: u32) -> (f64, f64) {
         match self.kind {
             SamplerKind::Center => CENTER,
