@@ -15,7 +15,7 @@ use crate::error::{Error, JobError};
 use crate::manifest::Manifest;
 use crate::mesh::MeshCache;
 use crate::ray::Ray;
-use crate::render::{GROUP, TILE, View, groups};
+use crate::render::{GROUP, PACKET_SIDE, TILE, View, groups};
 use crate::scene::{Hit, Scene, SceneGeometry, Tracer};
 
 /// The outcome of verifying one manifest.
@@ -108,14 +108,17 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
     })
 }
 
-/// Rays made and traced at a time: their rays and hits take tens of megabytes.
+/// Rays made and traced at a time, about: their rays and hits take tens of megabytes.
 const RAYS_PER_ROUND: usize = 1 << 19;
+/// Pieces of work per round (a band of rows, or part of one), so that both threads have
+/// several.
+const PIECES_PER_ROUND: usize = 16;
 
 /// The closest-hit distance of every camera ray (NaN for a miss) by each tracer, the same
 /// rays in the same order, and the seconds each spent tracing. The rays go as the renderer
 /// sends them, the same sample of each group of pixels together ([`Tracer::closest_hits`]:
-/// our packets, Embree's coherent streams), in rounds of bands of rows: each round's rays
-/// are made first, then traced by one tracer and by the other, only the tracing timed.
+/// our packets, Embree's coherent streams), in rounds: each round's rays are made first,
+/// then traced by one tracer and by the other, only the tracing timed.
 fn trace_both<A: Tracer, B: Tracer>(
     ours: &A,
     reference: &B,
@@ -123,21 +126,30 @@ fn trace_both<A: Tracer, B: Tracer>(
     manifest: &Manifest,
 ) -> (Vec<f64>, Vec<f64>, f64, f64) {
     let (width, height, spp) = (manifest.width, manifest.height, view.spp());
-    let rays_per_band = (width * TILE * spp) as usize;
-    let bands_per_round = (RAYS_PER_ROUND / rays_per_band.max(1)).max(1) as u32;
+    // Pieces: a band's groups from one index to another, at most a piece's share of a
+    // round's rays (but one group at least).
+    let rays_per_group = GROUP * spp as usize;
+    let groups_per_piece = (RAYS_PER_ROUND / PIECES_PER_ROUND / rays_per_group).max(1);
+    let pieces: Vec<(u32, usize, usize)> = (0..height.div_ceil(TILE))
+        .flat_map(|band| {
+            let rows = TILE.min(height - band * TILE);
+            let count = (width.div_ceil(PACKET_SIDE) * rows.div_ceil(PACKET_SIDE)) as usize;
+            (0..count)
+                .step_by(groups_per_piece)
+                .map(move |first| (band, first, (first + groups_per_piece).min(count)))
+        })
+        .collect();
     let (mut ours_t, mut reference_t) = (Vec::new(), Vec::new());
     let (mut ours_s, mut reference_s) = (0.0, 0.0);
-    let bands = height.div_ceil(TILE);
-    for first in (0..bands).step_by(bands_per_round as usize) {
-        // Each band's rays in render order.
-        let round: Vec<Vec<Ray>> = (first..(first + bands_per_round).min(bands))
-            .into_par_iter()
-            .map(|band| {
+    for round in pieces.chunks(PIECES_PER_ROUND) {
+        let rays: Vec<Vec<Ray>> = round
+            .par_iter()
+            .map(|&(band, first, end)| {
                 let y0 = band * TILE;
                 let rows = TILE.min(height - y0);
-                let mut rays = Vec::with_capacity((width * rows * spp) as usize);
+                let mut rays = Vec::with_capacity((end - first) * rays_per_group);
                 let mut group = [view.ray(0, 0, 0); GROUP];
-                for (pixels, n) in groups(width, rows) {
+                for (pixels, n) in groups(width, rows).skip(first).take(end - first) {
                     for s in 0..spp {
                         view.rays(&pixels[..n], y0, s, &mut group[..n]);
                         rays.extend_from_slice(&group[..n]);
@@ -146,13 +158,13 @@ fn trace_both<A: Tracer, B: Tracer>(
                 rays
             })
             .collect();
-        ours_s += trace_round(ours, &round, &mut ours_t);
-        reference_s += trace_round(reference, &round, &mut reference_t);
+        ours_s += trace_round(ours, &rays, &mut ours_t);
+        reference_s += trace_round(reference, &rays, &mut reference_t);
     }
     (ours_t, reference_t, ours_s, reference_s)
 }
 
-/// Traces a round's rays a group at a time, each band on its own thread, and appends their
+/// Traces a round's rays a group at a time, each piece on its own thread, and appends their
 /// distances to `t`; returns the seconds spent tracing.
 fn trace_round<T: Tracer>(tracer: &T, round: &[Vec<Ray>], t: &mut Vec<f64>) -> f64 {
     let mut hits: Vec<Vec<Option<Hit>>> = round.iter().map(|rays| vec![None; rays.len()]).collect();
