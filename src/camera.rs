@@ -159,10 +159,10 @@ impl Camera {
         }
     }
 
-    /// The rays of a pinhole camera through screen coordinates `(u[i], v[i])`, into
-    /// `out[i]`: bit for bit the rays of [`Camera::ray_at`] (lens sample at the centre),
-    /// computed four at a time with AVX where the CPU has it, so that four rays share each
-    /// square root and division.
+    /// The rays of a pinhole camera (one without a lens: see [`Camera::lens_rays`])
+    /// through screen coordinates `(u[i], v[i])`, into `out[i]`: bit for bit the rays of
+    /// [`Camera::ray_at`], computed four at a time with AVX where the CPU has it, so that
+    /// four rays share each square root and division.
     pub fn pinhole_rays(&self, u: &[f64], v: &[f64], out: &mut [Ray]) {
         assert!(
             self.lens.is_none(),
