@@ -231,6 +231,17 @@ impl Camera {
             let scale = _mm256_div_pd(_mm256_set1_pd(1.0), _mm256_sqrt_pd(squared));
             [mul(x, scale), mul(y, scale), mul(z, scale)]
         };
+        // The lens's constants, broadcast once.
+        let lens = lens.map(|(l, points)| {
+            let lanes = (
+                splat(l.axis),
+                splat(l.lens_x),
+                splat(l.lens_y),
+                _mm256_set1_pd(l.radius),
+                _mm256_set1_pd(l.focus_distance),
+            );
+            (lanes, points)
+        });
         let groups = out
             .chunks_exact_mut(4)
             .zip(u.chunks_exact(4))
@@ -243,20 +254,17 @@ impl Camera {
                 normalize([0, 1, 2].map(|a| add(add(mul(u, right[a]), mul(v, up[a])), forward[a])));
             let (origin, direction) = match lens {
                 None => (eye, direction),
-                Some((l, points)) => {
+                Some(((axis, lens_x, lens_y, radius, focus_distance), points)) => {
                     let p = &points[4 * g..4 * g + 4];
                     let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
                     let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
                     // SAFETY: AVX is enabled in this function.
                     let (dx, dy) = unsafe { concentric_disk_avx(a, b) };
-                    let axis = splat(l.axis);
                     let dot = add(
                         add(mul(direction[0], axis[0]), mul(direction[1], axis[1])),
                         mul(direction[2], axis[2]),
                     );
-                    let scale = _mm256_div_pd(_mm256_set1_pd(l.focus_distance), dot);
-                    let (lens_x, lens_y, radius) =
-                        (splat(l.lens_x), splat(l.lens_y), _mm256_set1_pd(l.radius));
+                    let scale = _mm256_div_pd(focus_distance, dot);
                     let focus = [0, 1, 2].map(|a| add(eye[a], mul(direction[a], scale)));
                     let origin = [0, 1, 2].map(|a| {
                         add(

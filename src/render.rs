@@ -99,6 +99,9 @@ impl View {
             return;
         }
         let (mut u, mut v) = ([0.0; GROUP], [0.0; GROUP]);
+        // Lens points: the centre for the `center` sampler, whose coordinates are tabled.
+        let mut lens = [crate::sampler::CENTER; GROUP];
+        let has_lens = self.camera.has_lens();
         match &self.screen {
             Some((columns, rows)) => {
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
@@ -110,7 +113,13 @@ impl View {
                 // Offsets first, then coordinates: the divisions of one pixel no longer
                 // wait for its hashes, and overlap with other pixels'.
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
-                    (u[i], v[i]) = self.sampler.pixel_offset(x, y0 + dy, s);
+                    (u[i], v[i]) = if has_lens {
+                        let (offset, point) = self.sampler.offset_and_lens(x, y0 + dy, s);
+                        lens[i] = point;
+                        offset
+                    } else {
+                        self.sampler.pixel_offset(x, y0 + dy, s)
+                    };
                 }
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
                     u[i] = self.camera.screen_u(x, u[i]);
@@ -119,11 +128,7 @@ impl View {
             }
         }
         let n = pixels.len();
-        if self.camera.has_lens() {
-            let mut lens = [crate::sampler::CENTER; GROUP];
-            for (point, &(x, dy)) in lens.iter_mut().zip(pixels) {
-                *point = self.sampler.lens(x, y0 + dy, s);
-            }
+        if has_lens {
             self.camera
                 .lens_rays(&u[..n], &v[..n], &lens[..n], &mut out[..n]);
         } else {

@@ -62,22 +62,7 @@ impl Sampler {
     pub fn pixel_offset(&self, x: u32, y: u32, s: u32) -> (f64, f64) {
         match self.kind {
             SamplerKind::Center => CENTER,
-            SamplerKind::Independent => {
-                let pixel = self.pixel_hash(x, y);
-                (
-                    uniform(pixel, s, DIM_PIXEL),
-                    uniform(pixel, s, DIM_PIXEL + 1),
-                )
-            }
-            SamplerKind::Stratified => {
-                let pixel = self.pixel_hash(x, y);
-                let (column, row) = (s % self.columns, s / self.columns);
-                let rows = self.spp / self.columns;
-                (
-                    (f64::from(column) + uniform(pixel, s, DIM_PIXEL)) / f64::from(self.columns),
-                    (f64::from(row) + uniform(pixel, s, DIM_PIXEL + 1)) / f64::from(rows),
-                )
-            }
+            _ => self.offset_from(self.pixel_hash(x, y), s),
         }
     }
 
@@ -86,10 +71,39 @@ impl Sampler {
     pub fn lens(&self, x: u32, y: u32, s: u32) -> (f64, f64) {
         match self.kind {
             SamplerKind::Center => CENTER,
+            _ => lens_from(self.pixel_hash(x, y), s),
+        }
+    }
+
+    /// [`Sampler::pixel_offset`] and [`Sampler::lens`] together, the pixel hashed once.
+    #[inline(always)]
+    pub fn offset_and_lens(&self, x: u32, y: u32, s: u32) -> ((f64, f64), (f64, f64)) {
+        match self.kind {
+            SamplerKind::Center => (CENTER, CENTER),
             _ => {
                 let pixel = self.pixel_hash(x, y);
-                (uniform(pixel, s, DIM_LENS), uniform(pixel, s, DIM_LENS + 1))
+                (self.offset_from(pixel, s), lens_from(pixel, s))
             }
+        }
+    }
+
+    /// The pixel offset of sample `s` of a random sampler, from its pixel's hash.
+    #[inline(always)]
+    fn offset_from(&self, pixel: u64, s: u32) -> (f64, f64) {
+        let (u, v) = (
+            uniform(pixel, s, DIM_PIXEL),
+            uniform(pixel, s, DIM_PIXEL + 1),
+        );
+        match self.kind {
+            SamplerKind::Stratified => {
+                let (column, row) = (s % self.columns, s / self.columns);
+                let rows = self.spp / self.columns;
+                (
+                    (f64::from(column) + u) / f64::from(self.columns),
+                    (f64::from(row) + v) / f64::from(rows),
+                )
+            }
+            _ => (u, v),
         }
     }
 
@@ -104,6 +118,12 @@ impl Sampler {
     fn pixel_hash(&self, x: u32, y: u32) -> u64 {
         mix(self.seed_hash ^ ((u64::from(x) << 32) | u64::from(y)))
     }
+}
+
+/// The lens point of sample `s`, from its pixel's hash.
+#[inline(always)]
+fn lens_from(pixel: u64, s: u32) -> (f64, f64) {
+    (uniform(pixel, s, DIM_LENS), uniform(pixel, s, DIM_LENS + 1))
 }
 
 /// The number of dimension `dimension` of sample `s`, from its pixel's hash.

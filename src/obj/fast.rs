@@ -530,10 +530,7 @@ const UNSET: u32 = u32::MAX;
 /// counts of the chunks before it then give each chunk's first index.
 fn assemble_one_object(chunks: &[Chunk], vertices: usize) -> MeshFile {
     use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
-    let all: Vec<[f32; 3]> = chunks
-        .iter()
-        .flat_map(|c| c.positions.iter().copied())
-        .collect();
+    let all = all_positions(chunks);
     let owner: Vec<AtomicU32> = (0..vertices).map(|_| AtomicU32::new(UNSET)).collect();
     chunks.par_iter().enumerate().for_each(|(c, chunk)| {
         let c = c as u32;
@@ -617,10 +614,7 @@ fn split_by_lengths<T>(mut items: &mut [T], lengths: impl Iterator<Item = usize>
 
 /// [`assemble`] in one pass over the faces, for any number of objects.
 fn assemble_in_order(chunks: &[Chunk], vertices: usize) -> MeshFile {
-    let all: Vec<[f32; 3]> = chunks
-        .iter()
-        .flat_map(|c| c.positions.iter().copied())
-        .collect();
+    let all = all_positions(chunks);
     let mut geometry = Geometry {
         positions: Vec::new(),
         triangles: Vec::with_capacity(chunks.iter().map(|c| c.corners.len()).sum::<usize>() / 3),
@@ -663,6 +657,14 @@ fn assemble_in_order(chunks: &[Chunk], vertices: usize) -> MeshFile {
         }
     }
     one_geometry(geometry)
+}
+
+/// Every position read, in file order.
+fn all_positions(chunks: &[Chunk]) -> Vec<[f32; 3]> {
+    chunks
+        .iter()
+        .flat_map(|c| c.positions.iter().copied())
+        .collect()
 }
 
 /// A file of one geometry, placed as it is.
