@@ -872,7 +872,7 @@ pub unsafe fn closest(
 /// them. (A prefetch never faults, so the addresses need not even be valid.) A plain loop:
 /// an iterator's stepping added instructions at every node the traversals visit.
 #[inline(always)]
-fn prefetch(start: usize, end: usize) {
+pub(crate) fn prefetch(start: usize, end: usize) {
     const LINE: usize = 64;
     let mut line = start & !(LINE - 1);
     while line < end {
