@@ -112,15 +112,9 @@ impl View {
             None => {
                 // Offsets first, then coordinates: the divisions of one pixel no longer
                 // wait for its hashes, and overlap with other pixels'.
-                for (i, &(x, dy)) in pixels.iter().enumerate() {
-                    (u[i], v[i]) = if has_lens {
-                        let (offset, point) = self.sampler.offset_and_lens(x, y0 + dy, s);
-                        lens[i] = point;
-                        offset
-                    } else {
-                        self.sampler.pixel_offset(x, y0 + dy, s)
-                    };
-                }
+                let lens = has_lens.then_some(&mut lens[..]);
+                self.sampler
+                    .group((pixels, y0), s, (&mut u[..], &mut v[..]), lens);
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
                     u[i] = self.camera.screen_u(x, u[i]);
                     v[i] = self.camera.screen_v(y0 + dy, v[i]);

@@ -75,16 +75,53 @@ impl Sampler {
         }
     }
 
-    /// [`Sampler::pixel_offset`] and [`Sampler::lens`] together, the pixel hashed once.
-    #[inline(always)]
-    pub fn offset_and_lens(&self, x: u32, y: u32, s: u32) -> ((f64, f64), (f64, f64)) {
-        match self.kind {
-            SamplerKind::Center => (CENTER, CENTER),
-            _ => {
-                let pixel = self.pixel_hash(x, y);
-                (self.offset_from(pixel, s), lens_from(pixel, s))
+    /// [`Sampler::pixel_offset`] of sample `s` for each pixel `(x, y0 + dy)` of `pixels`,
+    /// into `(u[i], v[i])`, and with `lens`, [`Sampler::lens`] into `lens[i]`: the same
+    /// numbers, a group at a time. The stratum is found once for the group, and where the
+    /// CPU has AVX-512 (whose 64-bit products hash eight pixels at once) the loop is
+    /// compiled for it.
+    pub fn group(
+        &self,
+        (pixels, y0): (&[(u32, u32)], u32),
+        s: u32,
+        (u, v): (&mut [f64], &mut [f64]),
+        lens: Option<&mut [(f64, f64)]>,
+    ) {
+        let n = pixels.len();
+        let (u, v) = (&mut u[..n], &mut v[..n]);
+        let stratum = match self.kind {
+            SamplerKind::Center => {
+                u.fill(CENTER.0);
+                v.fill(CENTER.1);
+                if let Some(lens) = lens {
+                    lens[..n].fill(CENTER);
+                }
+                return;
             }
+            SamplerKind::Independent => None,
+            SamplerKind::Stratified => {
+                let (column, row) = (s % self.columns, s / self.columns);
+                let rows = self.spp / self.columns;
+                Some([column, row, self.columns, rows].map(f64::from))
+            }
+        };
+        let group = Group {
+            seed_hash: self.seed_hash,
+            pixels,
+            y0,
+            s,
+            stratum,
+        };
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512dq")
+            && std::is_x86_feature_detected!("avx512vl")
+        {
+            // SAFETY: the CPU has these features.
+            unsafe { group_avx512(&group, u, v, lens) };
+            return;
         }
+        group_numbers(&group, u, v, lens);
     }
 
     /// The pixel offset of sample `s` of a random sampler, from its pixel's hash.
@@ -116,7 +153,68 @@ impl Sampler {
     /// The hash of the seed and pixel, which every number of the pixel starts from.
     #[inline(always)]
     fn pixel_hash(&self, x: u32, y: u32) -> u64 {
-        mix(self.seed_hash ^ ((u64::from(x) << 32) | u64::from(y)))
+        hash_pixel(self.seed_hash, x, y)
+    }
+}
+
+/// A group of pixels' sample, for [`Sampler::group`].
+struct Group<'a> {
+    /// The seed's hash, from which each pixel's is made.
+    seed_hash: u64,
+    pixels: &'a [(u32, u32)],
+    y0: u32,
+    s: u32,
+    /// For the stratified sampler, the sample's cell: its column and row, and the grid's
+    /// columns and rows.
+    stratum: Option<[f64; 4]>,
+}
+
+/// [`Sampler::group`] for a random sampler, compiled for AVX-512.
+///
+/// # Safety
+/// The CPU must have AVX-512 F, DQ and VL.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl")]
+unsafe fn group_avx512(
+    group: &Group,
+    u: &mut [f64],
+    v: &mut [f64],
+    lens: Option<&mut [(f64, f64)]>,
+) {
+    group_numbers(group, u, v, lens);
+}
+
+/// [`Sampler::group`] for a random sampler: the offsets, then the lens points, each loop
+/// free of branches so that the compiler can take several pixels at once.
+#[inline(always)]
+fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut [(f64, f64)]>) {
+    let &Group {
+        seed_hash,
+        pixels,
+        y0,
+        s,
+        stratum,
+    } = group;
+    let pixel = |&(x, dy): &(u32, u32)| hash_pixel(seed_hash, x, y0 + dy);
+    match stratum {
+        Some([column, row, columns, rows]) => {
+            for ((p, u), v) in pixels.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
+                let hash = pixel(p);
+                *u = (column + uniform(hash, s, DIM_PIXEL)) / columns;
+                *v = (row + uniform(hash, s, DIM_PIXEL + 1)) / rows;
+            }
+        }
+        None => {
+            for ((p, u), v) in pixels.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
+                let hash = pixel(p);
+                (*u, *v) = (uniform(hash, s, DIM_PIXEL), uniform(hash, s, DIM_PIXEL + 1));
+            }
+        }
+    }
+    if let Some(lens) = lens {
+        for (p, lens) in pixels.iter().zip(lens.iter_mut()) {
+            *lens = lens_from(pixel(p), s);
+        }
     }
 }
 
@@ -131,6 +229,12 @@ fn lens_from(pixel: u64, s: u32) -> (f64, f64) {
 fn uniform(pixel_hash: u64, s: u32, dimension: u64) -> f64 {
     let h = mix(pixel_hash ^ ((u64::from(s) << 16) | dimension));
     (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+}
+
+/// The hash of pixel `(x, y)` under the seed's hash: where its numbers start.
+#[inline(always)]
+fn hash_pixel(seed_hash: u64, x: u32, y: u32) -> u64 {
+    mix(seed_hash ^ ((u64::from(x) << 32) | u64::from(y)))
 }
 
 /// SplitMix64's finalizer: a bijective mix of 64 bits.
@@ -162,6 +266,65 @@ mod tests {
                     (v * f64::from(rows)) as u32 * s.columns + (u * f64::from(s.columns)) as u32;
                 assert!(!seen[cell as usize], "spp {spp}: cell {cell} twice");
                 seen[cell as usize] = true;
+            }
+        }
+    }
+
+    #[test]
+    fn a_group_s_numbers_are_the_numbers_one_by_one() {
+        // Every kind, with and without lens points, through the dispatch (AVX-512 where
+        // the CPU has it) and through the plain loop, for groups of every size.
+        let pixels: Vec<(u32, u32)> = (0..64).map(|i| ((i * 5) % 41, (i * 3) % 16)).collect();
+        for kind in [
+            SamplerKind::Center,
+            SamplerKind::Independent,
+            SamplerKind::Stratified,
+        ] {
+            let sampler = sampler(kind, 6);
+            for n in 0..=pixels.len() {
+                for s in 0..sampler.spp() {
+                    let (mut u, mut v, mut lens) = ([9.0; 64], [9.0; 64], [(9.0, 9.0); 64]);
+                    let (mut plain_u, mut plain_v) = ([9.0; 64], [9.0; 64]);
+                    let mut plain_lens = [(9.0, 9.0); 64];
+                    let pixels = (&pixels[..n], 7);
+                    sampler.group(pixels, s, (&mut u, &mut v), Some(&mut lens));
+                    let (mut u2, mut v2) = ([9.0; 64], [9.0; 64]);
+                    sampler.group(pixels, s, (&mut u2, &mut v2), None);
+                    if kind != SamplerKind::Center {
+                        let group = Group {
+                            seed_hash: sampler.seed_hash,
+                            pixels: pixels.0,
+                            y0: 7,
+                            s,
+                            stratum: (kind == SamplerKind::Stratified).then(|| {
+                                let (c, r) = (s % sampler.columns, s / sampler.columns);
+                                let rows = sampler.spp / sampler.columns;
+                                [c, r, sampler.columns, rows].map(f64::from)
+                            }),
+                        };
+                        group_numbers(
+                            &group,
+                            &mut plain_u[..n],
+                            &mut plain_v[..n],
+                            Some(&mut plain_lens[..n]),
+                        );
+                    }
+                    for (i, &(x, dy)) in pixels.0.iter().enumerate() {
+                        let offset = sampler.pixel_offset(x, 7 + dy, s);
+                        let point = sampler.lens(x, 7 + dy, s);
+                        let bits = |(a, b): (f64, f64)| (a.to_bits(), b.to_bits());
+                        assert_eq!(bits((u[i], v[i])), bits(offset), "{kind:?} {n} {s} {i}");
+                        assert_eq!(bits((u2[i], v2[i])), bits(offset));
+                        assert_eq!(bits(lens[i]), bits(point));
+                        if kind != SamplerKind::Center {
+                            assert_eq!(bits((plain_u[i], plain_v[i])), bits(offset));
+                            assert_eq!(bits(plain_lens[i]), bits(point));
+                        }
+                    }
+                    // Nothing past the group is written.
+                    assert!(u[n..].iter().chain(&v2[n..]).all(|&x| x == 9.0));
+                    assert!(lens[n..].iter().all(|&p| p == (9.0, 9.0)));
+                }
             }
         }
     }
