@@ -12,7 +12,7 @@
 //! own, whose eight slots are shared between the two children); `i > 0` shares `i + 1`
 //! slots between the children or takes the answer for fewer slots.
 
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, Ordering};
 
 use obvhs::bvh2::Bvh2;
 use rayon::prelude::*;
@@ -104,9 +104,16 @@ pub struct Collapse<'a> {
     bvh2: &'a Bvh2,
     max_leaf: u32,
     leaf_cost: LeafCost,
-    choices: Vec<AtomicU64>,
-    /// Primitives under each binary node.
-    primitives: Vec<AtomicU32>,
+    /// Each binary node's decisions, at its index.
+    entries: Vec<Entry>,
+}
+
+/// What the collapse keeps of a binary node: its seven choices (packed, the low and high
+/// halves), and the primitives under it. Kept together, so that writing a node's touches
+/// one line, often shared with its sibling's.
+struct Entry {
+    choices: [AtomicU32; 2],
+    primitives: AtomicU32,
 }
 
 impl<'a> Collapse<'a> {
@@ -116,22 +123,19 @@ impl<'a> Collapse<'a> {
     pub fn new(bvh2: &'a Bvh2, max_leaf: u32, leaf_cost: LeafCost) -> Collapse<'a> {
         // Filled in parallel: first touching their pages is most of the cost.
         let len = bvh2.nodes.len();
-        let choices = (0..len)
+        let entries = (0..len)
             .into_par_iter()
             .with_min_len(PARALLEL_FILL)
-            .map(|_| AtomicU64::new(0))
-            .collect();
-        let primitives = (0..len)
-            .into_par_iter()
-            .with_min_len(PARALLEL_FILL)
-            .map(|_| AtomicU32::new(0))
+            .map(|_| Entry {
+                choices: [AtomicU32::new(0), AtomicU32::new(0)],
+                primitives: AtomicU32::new(0),
+            })
             .collect();
         let collapse = Collapse {
             bvh2,
             max_leaf,
             leaf_cost,
-            choices,
-            primitives,
+            entries,
         };
         if !bvh2.nodes.is_empty() {
             collapse.cost_parallel(0, 0);
@@ -145,7 +149,7 @@ impl<'a> Collapse<'a> {
         if node.is_leaf() {
             node.prim_count
         } else {
-            self.primitives[n].load(Ordering::Relaxed)
+            self.entries[n].primitives.load(Ordering::Relaxed)
         }
     }
 
@@ -179,7 +183,9 @@ impl<'a> Collapse<'a> {
     }
 
     fn choice(&self, n: usize, i: u8) -> Choice {
-        let packed = self.choices[n].load(Ordering::Relaxed);
+        let [low, high] = &self.entries[n].choices;
+        let packed =
+            u64::from(low.load(Ordering::Relaxed)) | u64::from(high.load(Ordering::Relaxed)) << 32;
         Choice::unpack((packed >> (8 * i)) as u8)
     }
 
@@ -270,10 +276,11 @@ impl<'a> Collapse<'a> {
     fn combine(&self, n: usize, left: &Costs, right: &Costs) -> Costs {
         let area = self.bvh2.nodes[n].aabb().half_area();
         let primitives = left.primitives + right.primitives;
+        let shares = share(&left.cost, &right.cost);
         let mut cost = [0f32; SLOTS - 1];
-        // Each choice packed as `Choice::unpack` reads it; the candidates are compared in a
-        // fixed order with `<`, so ties go to the first, and selected without branches
-        // (which of them wins is unpredictable).
+        // Each choice packed as `Choice::unpack` reads it. Candidates are compared with `<`
+        // in a fixed order, so a tie keeps the one held: a wide node over a leaf, fewer
+        // slots over more, an earlier split over a later one ([`share`]).
         let mut choices = [0u8; SLOTS - 1];
 
         // One slot: a leaf, or a wide node sharing its eight slots between the children.
@@ -282,17 +289,7 @@ impl<'a> Collapse<'a> {
         } else {
             f32::INFINITY
         };
-        let (mut shared, mut slots) = (f32::INFINITY, split_slots(u8::MAX, u8::MAX));
-        for k in 0..SLOTS - 1 {
-            let c = left.cost[k] + right.cost[SLOTS - 2 - k];
-            let better = c < shared;
-            shared = if better { c } else { shared };
-            slots = if better {
-                split_slots(k as u8, (SLOTS - 2 - k) as u8)
-            } else {
-                slots
-            };
-        }
+        let (shared, slots) = shares[SLOTS - 1];
         let as_node = shared + area;
         (cost[0], choices[0]) = if as_leaf < as_node {
             (as_leaf, KIND_LEAF | slots)
@@ -302,23 +299,50 @@ impl<'a> Collapse<'a> {
 
         // More slots: share them between the children, or do as with one fewer.
         for i in 1..SLOTS - 1 {
-            let (mut best, mut choice) = (cost[i - 1], choices[i - 1]);
-            for k in 0..i {
-                let c = left.cost[k] + right.cost[i - k - 1];
-                let better = c < best;
-                best = if better { c } else { best };
-                choice = if better {
-                    KIND_SPLIT | split_slots(k as u8, (i - k - 1) as u8)
-                } else {
-                    choice
-                };
-            }
-            (cost[i], choices[i]) = (best, choice);
+            let (split, slots) = shares[i];
+            (cost[i], choices[i]) = if split < cost[i - 1] {
+                (split, KIND_SPLIT | slots)
+            } else {
+                (cost[i - 1], choices[i - 1])
+            };
         }
-        self.choices[n].store(u64::from_le_bytes(pad(choices)), Ordering::Relaxed);
-        self.primitives[n].store(primitives, Ordering::Relaxed);
+        let entry = &self.entries[n];
+        let packed = u64::from_le_bytes(pad(choices));
+        entry.choices[0].store(packed as u32, Ordering::Relaxed);
+        entry.choices[1].store((packed >> 32) as u32, Ordering::Relaxed);
+        entry.primitives.store(primitives, Ordering::Relaxed);
         Costs { cost, primitives }
     }
+}
+
+/// For each `i` in `1..8`, the cheapest way to share `i + 1` slots between two children,
+/// `k + 1` to the left and the rest to the right: the least `left[k] + right[i − 1 − k]`
+/// below infinity, the first `k` on ties, and the slots packed as a choice's
+/// (`split_slots(u8::MAX, u8::MAX)` and infinity if none). Entry 0 is unused.
+///
+/// (Skipping most candidates where a child is a binary leaf, whose costs are all the same,
+/// was slower: which nodes have a leaf child is unpredictable.)
+#[inline(always)]
+fn share(left: &[f32; SLOTS - 1], right: &[f32; SLOTS - 1]) -> [(f32, u8); SLOTS] {
+    let none = (f32::INFINITY, split_slots(u8::MAX, u8::MAX));
+    let mut shares = [none; SLOTS];
+    for (i, share) in shares.iter_mut().enumerate().skip(1) {
+        // Compared in a fixed order and selected without branches (which of them wins is
+        // unpredictable).
+        let (mut best, mut slots) = none;
+        for k in 0..i {
+            let c = left[k] + right[i - 1 - k];
+            let better = c < best;
+            best = if better { c } else { best };
+            slots = if better {
+                split_slots(k as u8, (i - 1 - k) as u8)
+            } else {
+                slots
+            };
+        }
+        *share = (best, slots);
+    }
+    shares
 }
 
 /// The kinds of packed choices ([`Choice::unpack`]).
