@@ -433,7 +433,8 @@ const DECIMAL: [([u8; 3], u8); 256] = {
 };
 
 /// Writes `bytes` to a hidden temporary file beside `path`, then puts it in `path`'s place
-/// ([`put_in_place`]): readers see the old file or the whole new one, never a part.
+/// in one step (on Linux, over an existing file, by exchanging the two and removing the
+/// old one): readers see the old file or the whole new one, never a part.
 /// Creates missing parent folders. On failure the temporary file is removed.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> io::Result<()> {
     write_parts_atomically(path, &[bytes])
