@@ -3,6 +3,7 @@
 //! limit was exceeded, 2 the command itself could not run as given).
 
 mod args;
+mod memory;
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -19,7 +20,7 @@ use raybatch::job::{Backend, Batch, JobOptions, manifests_in};
 const USAGE: u8 = 2;
 
 fn main() -> ExitCode {
-    keep_freed_memory();
+    memory::keep_freed_memory();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Render(args) => render(args),
@@ -36,29 +37,6 @@ fn main() -> ExitCode {
         }
     }
 }
-
-/// Asks glibc's allocator to serve every block from its heaps and keep what is freed,
-/// instead of mapping fresh pages for each large block and returning them at once: a
-/// job's phases (a mesh's read buffers, the tree build's temporaries, the image) and the
-/// jobs of a batch then reuse memory rather than fault it in anew, and page faults are
-/// dear here. Measured: a full-HD job of a 124k-triangle mesh went from 19.7k to 12.3k
-/// faults (build 45 -> 35 ms, load 23 -> 18 ms) with large blocks on the heap, and the
-/// million-triangle torus's build in `raybatch bench` from 0.25 to 0.17 s once no block
-/// was mapped on its own (BENCHMARKS.md).
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn keep_freed_memory() {
-    // SAFETY: `mallopt` only sets allocator parameters; no other thread exists yet. A
-    // refused setting (return value 0) leaves glibc's default, which is also correct.
-    // Without mappings of its own a block too large for a thread's heap is served by the
-    // main heap, and glibc still maps memory when that heap cannot grow.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_MAX, 0);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, libc::c_int::MAX);
-    }
-}
-
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-fn keep_freed_memory() {}
 
 /// `raybatch render`: every job runs even when some fail.
 fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
