@@ -89,28 +89,20 @@ impl Sampler {
     ) {
         let n = pixels.len();
         let (u, v) = (&mut u[..n], &mut v[..n]);
-        let stratum = match self.kind {
-            SamplerKind::Center => {
-                u.fill(CENTER.0);
-                v.fill(CENTER.1);
-                if let Some(lens) = lens {
-                    lens[..n].fill(CENTER);
-                }
-                return;
+        if self.kind == SamplerKind::Center {
+            u.fill(CENTER.0);
+            v.fill(CENTER.1);
+            if let Some(lens) = lens {
+                lens[..n].fill(CENTER);
             }
-            SamplerKind::Independent => None,
-            SamplerKind::Stratified => {
-                let (column, row) = (s % self.columns, s / self.columns);
-                let rows = self.spp / self.columns;
-                Some([column, row, self.columns, rows].map(f64::from))
-            }
-        };
+            return;
+        }
         let group = Group {
             seed_hash: self.seed_hash,
             pixels,
             y0,
             s,
-            stratum,
+            stratum: self.stratum(s),
         };
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx512f")
@@ -127,21 +119,21 @@ impl Sampler {
     /// The pixel offset of sample `s` of a random sampler, from its pixel's hash.
     #[inline(always)]
     fn offset_from(&self, pixel: u64, s: u32) -> (f64, f64) {
-        let (u, v) = (
-            uniform(pixel, s, DIM_PIXEL),
-            uniform(pixel, s, DIM_PIXEL + 1),
-        );
-        match self.kind {
-            SamplerKind::Stratified => {
-                let (column, row) = (s % self.columns, s / self.columns);
-                let rows = self.spp / self.columns;
-                (
-                    (f64::from(column) + u) / f64::from(self.columns),
-                    (f64::from(row) + v) / f64::from(rows),
-                )
-            }
-            _ => (u, v),
+        match self.stratum(s) {
+            Some(cell) => offset_in(cell, pixel, s),
+            None => unit_offset(pixel, s),
         }
+    }
+
+    /// For the stratified sampler, sample `s`'s cell: its column and row, and the grid's
+    /// columns and rows ([`offset_in`]); `None` for the others.
+    #[inline(always)]
+    fn stratum(&self, s: u32) -> Option<[f64; 4]> {
+        (self.kind == SamplerKind::Stratified).then(|| {
+            let (column, row) = (s % self.columns, s / self.columns);
+            let rows = self.spp / self.columns;
+            [column, row, self.columns, rows].map(f64::from)
+        })
     }
 
     /// A uniform number in `[0, 1)` determined by the seed, pixel, sample and dimension.
@@ -196,18 +188,16 @@ fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut 
         stratum,
     } = group;
     let pixel = |&(x, dy): &(u32, u32)| hash_pixel(seed_hash, x, y0 + dy);
+    // The kind chosen once, outside the loops.
     match stratum {
-        Some([column, row, columns, rows]) => {
+        Some(cell) => {
             for ((p, u), v) in pixels.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
-                let hash = pixel(p);
-                *u = (column + uniform(hash, s, DIM_PIXEL)) / columns;
-                *v = (row + uniform(hash, s, DIM_PIXEL + 1)) / rows;
+                (*u, *v) = offset_in(cell, pixel(p), s);
             }
         }
         None => {
             for ((p, u), v) in pixels.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
-                let hash = pixel(p);
-                (*u, *v) = (uniform(hash, s, DIM_PIXEL), uniform(hash, s, DIM_PIXEL + 1));
+                (*u, *v) = unit_offset(pixel(p), s);
             }
         }
     }
@@ -216,6 +206,22 @@ fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut 
             *lens = lens_from(pixel(p), s);
         }
     }
+}
+
+/// The offset of sample `s` of a random pixel, from its pixel's hash: uniform in `[0, 1)²`.
+#[inline(always)]
+fn unit_offset(pixel: u64, s: u32) -> (f64, f64) {
+    (
+        uniform(pixel, s, DIM_PIXEL),
+        uniform(pixel, s, DIM_PIXEL + 1),
+    )
+}
+
+/// [`unit_offset`] placed in the stratified grid's `cell` (column, row, columns, rows).
+#[inline(always)]
+fn offset_in([column, row, columns, rows]: [f64; 4], pixel: u64, s: u32) -> (f64, f64) {
+    let (u, v) = unit_offset(pixel, s);
+    ((column + u) / columns, (row + v) / rows)
 }
 
 /// The lens point of sample `s`, from its pixel's hash.
@@ -296,11 +302,7 @@ mod tests {
                             pixels: pixels.0,
                             y0: 7,
                             s,
-                            stratum: (kind == SamplerKind::Stratified).then(|| {
-                                let (c, r) = (s % sampler.columns, s / sampler.columns);
-                                let rows = sampler.spp / sampler.columns;
-                                [c, r, sampler.columns, rows].map(f64::from)
-                            }),
+                            stratum: sampler.stratum(s),
                         };
                         group_numbers(
                             &group,
