@@ -1171,7 +1171,7 @@ fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u
             c.map(|x| (x + s.radius).next_up()),
         )
     };
-    let params = preset.params(SPHERES_PER_LEAF);
+    let params = preset.for_spheres().params(SPHERES_PER_LEAF);
     let (tree, ids) = Bvh::build_from(
         spheres.len(),
         box_of,
