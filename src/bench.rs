@@ -682,7 +682,7 @@ fn job_in_turns(manifest: &Path, embree: bool) -> (f64, Option<f64>) {
             backend,
             ..JobOptions::default()
         })
-        .run(manifest, &|_| {});
+        .run_last(manifest, &|_| {});
         assert!(report.ok(), "{:?}", report.error);
     };
     let backends: &[Backend] = if embree {

@@ -191,7 +191,10 @@ impl Batch {
         self.last_tree = None;
         let scene = Scene::build_with(geometry, preset);
         self.tree_builds += 1;
-        self.last_tree = Some((geometry.sources.clone(), Arc::clone(scene.triangle_tree())));
+        // Kept for the next job only while its meshes are (not after the last job).
+        if !geometry.sources.is_empty() {
+            self.last_tree = Some((geometry.sources.clone(), Arc::clone(scene.triangle_tree())));
+        }
         scene
     }
 
@@ -205,9 +208,21 @@ impl Batch {
 
     /// Renders the manifest at `path`. `progress` receives finished pixel counts.
     pub fn run(&mut self, path: &Path, progress: &(dyn Fn(u64) + Sync)) -> JobReport {
+        self.run_job(path, progress, false)
+    }
+
+    /// [`Batch::run`] for the batch's last job: no job after it can share its meshes, so
+    /// once its triangles are placed the meshes read so far are let go, and its tree is
+    /// built without them in memory (a million-triangle OBJ's vertices and faces are 18 MB).
+    /// The batch can still run jobs after it; they read their meshes again.
+    pub fn run_last(&mut self, path: &Path, progress: &(dyn Fn(u64) + Sync)) -> JobReport {
+        self.run_job(path, progress, true)
+    }
+
+    fn run_job(&mut self, path: &Path, progress: &(dyn Fn(u64) + Sync), last: bool) -> JobReport {
         let mut report = JobReport::new(path);
         report.backend = self.options.backend.name();
-        if let Err(error) = self.run_inner(path, &mut report, progress) {
+        if let Err(error) = self.run_inner(path, &mut report, progress, last) {
             report.error = Some(JobError {
                 manifest: path.to_path_buf(),
                 error,
@@ -221,6 +236,7 @@ impl Batch {
         path: &Path,
         report: &mut JobReport,
         progress: &(dyn Fn(u64) + Sync),
+        last: bool,
     ) -> Result<(), Error> {
         let start = Instant::now();
         let manifest = Manifest::load(path)?;
@@ -248,6 +264,12 @@ impl Batch {
         };
         if reused.is_none() {
             geometry.place_triangles(&manifest)?;
+            if last {
+                // Placed, the triangles need their files no more, nor does any later job.
+                geometry.sources.clear();
+                self.meshes = MeshCache::default();
+                self.last_tree = None;
+            }
         }
         report.warnings = geometry.warnings.clone();
         report.load_s = start.elapsed().as_secs_f64();

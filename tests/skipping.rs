@@ -1,6 +1,7 @@
 //! What a job does not do because its scene does not need it: no mesh read or triangle
 //! tree without meshes, no sphere tree without spheres, no closest-hit search or normals
-//! for `hit`, a mesh shared by a batch read and built once. (glTF images never being
+//! for `hit`, a mesh shared by a batch read and built once, the last job's meshes let go
+//! before its build. (glTF images never being
 //! decoded is `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
 
 use std::path::Path;
@@ -128,6 +129,43 @@ fn manifest(mesh: &str, translate: f64, camera_x: f64, output: &str) -> String {
             "meshes": [{{"file": "{mesh}", "transform": {{"translate": [{translate}, 0, 2]}}}}],
             "output": "{output}"}}"#
     )
+}
+
+#[test]
+fn the_last_job_lets_its_meshes_go_and_what_runs_after_it_reads_them_again() {
+    let dir = Dir::new();
+    dir.write("tetra.obj", TETRAHEDRON);
+    let a = dir.write("a.json", manifest("tetra.obj", 0.0, 0.0, "a.pfm"));
+    let b = dir.write("b.json", manifest("tetra.obj", 0.0, 0.5, "b.pfm"));
+    let spheres = dir.write(
+        "spheres.json",
+        r#"{"image": {"width": 24, "height": 16}, "integrator": {"type": "depth"},
+            "spheres": [{"center": [0, 0, 5], "radius": 1}], "output": "spheres.pfm"}"#,
+    );
+    // Each alone, as references.
+    let alone = Dir::new();
+    alone.write("tetra.obj", TETRAHEDRON);
+    for (name, path) in [("a", &a), ("b", &b), ("spheres", &spheres)] {
+        let copy = alone.write(
+            &format!("{name}.json"),
+            std::fs::read_to_string(path).unwrap(),
+        );
+        assert!(Batch::new(JobOptions::default()).run(&copy, &|_| {}).ok());
+    }
+
+    let mut batch = Batch::new(JobOptions::default());
+    let report = batch.run_last(&a, &|_| {});
+    assert!(report.ok(), "{:?}", report.error);
+    assert!(batch.meshes().is_empty(), "the mesh is let go");
+    // Jobs after a last one still work: a meshless job gets no triangles from it, and a
+    // mesh job reads its mesh again and builds its own tree.
+    assert!(!run(&mut batch, &spheres));
+    assert!(!run(&mut batch, &b));
+    assert_eq!(batch.meshes().len(), 1);
+    assert_eq!(batch.triangle_tree_builds(), 2);
+    for name in ["a.pfm", "b.pfm", "spheres.pfm"] {
+        assert_eq!(dir.read(name), alone.read(name), "{name}");
+    }
 }
 
 fn run(batch: &mut Batch, path: &Path) -> bool {

@@ -74,7 +74,12 @@ fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
         bar.set_length(0);
         bar.set_prefix(format!("[{}/{job_count}]", i + 1));
         bar.set_message(manifest.display().to_string());
-        let report = batch.run(manifest, &|pixels| bar.inc(pixels));
+        let progress = |pixels| bar.inc(pixels);
+        let report = if i + 1 == job_count {
+            batch.run_last(manifest, &progress)
+        } else {
+            batch.run(manifest, &progress)
+        };
         if let (Some(w), Some(h)) = (report.width, report.height) {
             bar.set_length(u64::from(w) * u64::from(h));
         }
