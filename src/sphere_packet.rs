@@ -13,7 +13,7 @@
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
 
-use crate::bvh::{BoxRay, Bvh, LEAF, WIDTH, f32_at_least, f32_at_most, leaf_range};
+use crate::bvh::{Bvh, LEAF, WIDTH, f32_at_least, f32_at_most, leaf_range};
 use crate::packet::{
     Bound, GroupLanes, PACKET, Visits, corner_bound, leaf_entry, leaf_parent, pop_within,
 };
@@ -112,7 +112,8 @@ unsafe fn trace<const ANY: bool>(
         return Some(visits);
     }
     // Per-ray values, four lanes per group; lanes past `n` repeat the last ray but never
-    // enter a box (their horizon is −∞).
+    // enter a box (their horizon is −∞). Made four rays at a time: `BoxRay::new`'s
+    // arithmetic (one division per axis, IEEE-exact in every lane as in scalar code).
     let mut origin = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
     let mut inv = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
     let mut inv_far = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
@@ -120,42 +121,78 @@ unsafe fn trace<const ANY: bool>(
     // Each ray's horizon: `tmax`, then its nearest hit so far.
     let mut horizon = Groups::ZERO;
     let mut nearest = [u32::MAX; PACKET];
+    // The packet's ranges per axis over its rays (the repeated lanes change none):
+    // origin, reciprocal direction (near and far planes); smallest tmin.
+    let (mut lo, mut hi) = (
+        [_mm256_set1_pd(f64::INFINITY); 9],
+        [_mm256_set1_pd(f64::NEG_INFINITY); 9],
+    );
+    let mut tmin_lo = _mm256_set1_pd(f64::INFINITY);
+    // Per axis, the direction signs seen in every lane: all rays must share them.
+    let (mut signs_any, mut signs_all) = ([0i32; 3], [0xf_i32; 3]);
+    let exit_scale = _mm256_set1_pd(<f64 as crate::bvh::Scalar>::EXIT_SCALE);
+    for g in 0..GROUPS {
+        let four = [0, 1, 2, 3].map(|l| &rays[(4 * g + l).min(n - 1)]);
+        let lanes =
+            |x: fn(&Ray) -> f64| _mm256_setr_pd(x(four[0]), x(four[1]), x(four[2]), x(four[3]));
+        let o = [
+            lanes(|r| r.origin.x),
+            lanes(|r| r.origin.y),
+            lanes(|r| r.origin.z),
+        ];
+        let d = [
+            lanes(|r| r.direction.x),
+            lanes(|r| r.direction.y),
+            lanes(|r| r.direction.z),
+        ];
+        let t = lanes(|r| r.tmin);
+        for a in 0..3 {
+            let i = _mm256_div_pd(_mm256_set1_pd(1.0), d[a]);
+            let f = _mm256_mul_pd(i, exit_scale);
+            // SAFETY: groups are 32-byte aligned arrays of four doubles.
+            unsafe {
+                _mm256_store_pd(origin[a].0[g].as_mut_ptr(), o[a]);
+                _mm256_store_pd(inv[a].0[g].as_mut_ptr(), i);
+                _mm256_store_pd(inv_far[a].0[g].as_mut_ptr(), f);
+            }
+            let signs = _mm256_movemask_pd(d[a]);
+            signs_any[a] |= signs;
+            signs_all[a] &= signs;
+            // `f64::min` and `max` keep the running value over a NaN, as these do with
+            // the new values first.
+            for (k, x) in [o[a], i, f].into_iter().enumerate() {
+                lo[3 * a + k] = _mm256_min_pd(x, lo[3 * a + k]);
+                hi[3 * a + k] = _mm256_max_pd(x, hi[3 * a + k]);
+            }
+        }
+        tmin_lo = _mm256_min_pd(t, tmin_lo);
+        // SAFETY: as above.
+        unsafe { _mm256_store_pd(tmin.0[g].as_mut_ptr(), t) };
+    }
+    if (0..3).any(|a| signs_any[a] != signs_all[a]) {
+        return None;
+    }
+    let octant = signs_all.map(|s| (s & 1) as usize);
+    let reduce = |v: __m256d, f: fn(f64, f64) -> f64| {
+        let mut x = [0f64; 4];
+        // SAFETY: `x` holds four doubles.
+        unsafe { _mm256_storeu_pd(x.as_mut_ptr(), v) };
+        f(f(x[0], x[1]), f(x[2], x[3]))
+    };
+    let range = |j: usize| (reduce(lo[j], f64::min), reduce(hi[j], f64::max));
+    let o_range = [range(0), range(3), range(6)];
+    let i_range = [range(1), range(4), range(7)];
+    let f_range = [range(2), range(5), range(8)];
+    let tmin_lo = reduce(tmin_lo, f64::min);
+    let mut packet_tmax = f64::NEG_INFINITY;
     // Rays that may still find a hit (for `ANY`).
     let mut live = 0;
-    // The packet's ranges per axis over its rays: origin, reciprocal direction (near and
-    // far planes); smallest tmin; largest horizon.
-    let mut o_range = [(f64::INFINITY, f64::NEG_INFINITY); 3];
-    let (mut i_range, mut f_range) = (o_range, o_range);
-    let mut tmin_lo = f64::INFINITY;
-    let mut packet_tmax = f64::NEG_INFINITY;
-    let mut octant = [0usize; 3];
-    let widen = |(lo, hi): &mut (f64, f64), x: f64| (*lo, *hi) = (lo.min(x), hi.max(x));
     for k in 0..PACKET {
-        let (g, l) = (k / 4, k % 4);
-        let ray = &rays[k.min(n - 1)];
-        let r = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
+        horizon.0[k / 4][k % 4] = if k < n { tmax[k] } else { f64::NEG_INFINITY };
         if k < n {
-            if k == 0 {
-                octant = r.near;
-            } else if r.near != octant {
-                return None;
-            }
-            for a in 0..3 {
-                widen(&mut o_range[a], r.origin[a]);
-                widen(&mut i_range[a], r.inv_dir[a]);
-                widen(&mut f_range[a], r.inv_dir_far[a]);
-            }
-            tmin_lo = tmin_lo.min(r.tmin);
             packet_tmax = packet_tmax.max(tmax[k]);
-            live += usize::from(tmax[k] > r.tmin);
+            live += usize::from(tmax[k] > rays[k].tmin);
         }
-        for a in 0..3 {
-            origin[a].0[g][l] = r.origin[a];
-            inv[a].0[g][l] = r.inv_dir[a];
-            inv_far[a].0[g][l] = r.inv_dir_far[a];
-        }
-        tmin.0[g][l] = r.tmin;
-        horizon.0[g][l] = if k < n { tmax[k] } else { f64::NEG_INFINITY };
     }
     let nodes = bvh.nodes();
     if nodes.is_empty() || live == 0 {
