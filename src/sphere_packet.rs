@@ -42,6 +42,16 @@ impl Groups {
     }
 }
 
+/// A packet's per-ray values that stay fixed while it is traced, four lanes per group:
+/// origin, reciprocal direction (near and far planes), `tmin`.
+#[repr(C)]
+struct RayLanes {
+    origin: [Groups; 3],
+    inv: [Groups; 3],
+    inv_far: [Groups; 3],
+    tmin: Groups,
+}
+
 /// A float64 at `p` in all four lanes.
 ///
 /// # Safety
@@ -114,10 +124,9 @@ unsafe fn trace<const ANY: bool>(
     // Per-ray values, four lanes per group; lanes past `n` repeat the last ray but never
     // enter a box (their horizon is −∞). Made four rays at a time: `BoxRay::new`'s
     // arithmetic (one division per axis, IEEE-exact in every lane as in scalar code).
-    let mut origin = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
-    let mut inv = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
-    let mut inv_far = [Groups::ZERO, Groups::ZERO, Groups::ZERO];
-    let mut tmin = Groups::ZERO;
+    // Every group is written below, the repeated lanes too, so nothing is zeroed first.
+    let mut fixed = MaybeUninit::<RayLanes>::uninit();
+    let lanes_of = fixed.as_mut_ptr();
     // Each ray's horizon: `tmax`, then its nearest hit so far.
     let mut horizon = Groups::ZERO;
     let mut nearest = [u32::MAX; PACKET];
@@ -149,11 +158,12 @@ unsafe fn trace<const ANY: bool>(
         for a in 0..3 {
             let i = _mm256_div_pd(_mm256_set1_pd(1.0), d[a]);
             let f = _mm256_mul_pd(i, exit_scale);
-            // SAFETY: groups are 32-byte aligned arrays of four doubles.
+            // SAFETY: in bounds of `fixed`; groups are 32-byte aligned arrays of four
+            // doubles; no reference to the uninitialized memory is made.
             unsafe {
-                _mm256_store_pd(origin[a].0[g].as_mut_ptr(), o[a]);
-                _mm256_store_pd(inv[a].0[g].as_mut_ptr(), i);
-                _mm256_store_pd(inv_far[a].0[g].as_mut_ptr(), f);
+                _mm256_store_pd((&raw mut (*lanes_of).origin[a].0[g]).cast(), o[a]);
+                _mm256_store_pd((&raw mut (*lanes_of).inv[a].0[g]).cast(), i);
+                _mm256_store_pd((&raw mut (*lanes_of).inv_far[a].0[g]).cast(), f);
             }
             let signs = _mm256_movemask_pd(d[a]);
             signs_any[a] |= signs;
@@ -167,8 +177,16 @@ unsafe fn trace<const ANY: bool>(
         }
         tmin_lo = _mm256_min_pd(t, tmin_lo);
         // SAFETY: as above.
-        unsafe { _mm256_store_pd(tmin.0[g].as_mut_ptr(), t) };
+        unsafe { _mm256_store_pd((&raw mut (*lanes_of).tmin.0[g]).cast(), t) };
     }
+    // SAFETY: every field's every group was written in the loop.
+    let fixed = unsafe { fixed.assume_init_ref() };
+    let RayLanes {
+        origin,
+        inv,
+        inv_far,
+        tmin,
+    } = fixed;
     if (0..3).any(|a| signs_any[a] != signs_all[a]) {
         return None;
     }
@@ -272,11 +290,11 @@ unsafe fn trace<const ANY: bool>(
             for g in 0..GROUPS {
                 // SAFETY: AVX2 is enabled in this function.
                 let lane = |groups: &Groups| unsafe { groups.load(g) };
-                let group = GroupLanes::read([&origin, &inv, &inv_far], (near, far), lane);
+                let group = GroupLanes::read([origin, inv, inv_far], (near, far), lane);
                 // The single-ray test, the leaf's box against four rays.
                 // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 doubles.
                 let (_, entered) = unsafe {
-                    slab_test! { &group, planes, slot, lane(&tmin), lane(&horizon),
+                    slab_test! { &group, planes, slot, lane(tmin), lane(&horizon),
                     broadcast_pd, _mm256_sub_pd, _mm256_mul_pd, _mm256_max_pd, _mm256_min_pd,
                     _mm256_cmp_pd }
                 };
