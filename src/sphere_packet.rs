@@ -133,8 +133,8 @@ unsafe fn trace<const ANY: bool>(
     // The packet's ranges per axis over its rays (the repeated lanes change none):
     // origin, reciprocal direction (near and far planes); smallest tmin.
     let (mut lo, mut hi) = (
-        [_mm256_set1_pd(f64::INFINITY); 9],
-        [_mm256_set1_pd(f64::NEG_INFINITY); 9],
+        [[_mm256_set1_pd(f64::INFINITY); 3]; 3],
+        [[_mm256_set1_pd(f64::NEG_INFINITY); 3]; 3],
     );
     let mut tmin_lo = _mm256_set1_pd(f64::INFINITY);
     // Per axis, the direction signs seen in every lane: all rays must share them.
@@ -171,8 +171,8 @@ unsafe fn trace<const ANY: bool>(
             // `f64::min` and `max` keep the running value over a NaN, as these do with
             // the new values first.
             for (k, x) in [o[a], i, f].into_iter().enumerate() {
-                lo[3 * a + k] = _mm256_min_pd(x, lo[3 * a + k]);
-                hi[3 * a + k] = _mm256_max_pd(x, hi[3 * a + k]);
+                lo[k][a] = _mm256_min_pd(x, lo[k][a]);
+                hi[k][a] = _mm256_max_pd(x, hi[k][a]);
             }
         }
         tmin_lo = _mm256_min_pd(t, tmin_lo);
@@ -197,10 +197,9 @@ unsafe fn trace<const ANY: bool>(
         unsafe { _mm256_storeu_pd(x.as_mut_ptr(), v) };
         f(f(x[0], x[1]), f(x[2], x[3]))
     };
-    let range = |j: usize| (reduce(lo[j], f64::min), reduce(hi[j], f64::max));
-    let o_range = [range(0), range(3), range(6)];
-    let i_range = [range(1), range(4), range(7)];
-    let f_range = [range(2), range(5), range(8)];
+    // Per quantity (origin, reciprocal, far reciprocal), per axis: (smallest, largest).
+    let [o_range, i_range, f_range] = [0, 1, 2]
+        .map(|k| [0, 1, 2].map(|a| (reduce(lo[k][a], f64::min), reduce(hi[k][a], f64::max))));
     let tmin_lo = reduce(tmin_lo, f64::min);
     let mut packet_tmax = f64::NEG_INFINITY;
     // Rays that may still find a hit (for `ANY`).

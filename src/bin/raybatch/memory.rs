@@ -5,9 +5,9 @@
 //! Pages stay the kernel's default size. Asking for transparent huge pages on large blocks
 //! (`madvise(MADV_HUGEPAGE)`, tried in fedd46c) halved the faults, but on a virtual
 //! machine that hands freed memory back to its host, a huge page touched first after a
-//! pause costs the host a fresh 2 MB: the torus job took 0.56 instead of 0.46 s when
-//! started a second after the previous process, for at most a per cent in back-to-back
-//! runs (DEVELOPERS.md, "Pages of the default size").
+//! pause costs the host a fresh 2 MB: the full-HD torus job took 0.58 instead of 0.49 s
+//! when started a second after the previous process, for at most a per cent in
+//! back-to-back runs (DEVELOPERS.md, "Pages of the default size").
 
 /// Asks glibc's allocator to serve every block from its heaps and keep what is freed,
 /// instead of mapping fresh pages for each large block and returning them at once: a
