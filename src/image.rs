@@ -681,10 +681,9 @@ mod tests {
         assert_eq!(encode(0.3, Encoding::Linear), 0.3);
     }
 
-    #[test]
-    fn plain_ppm_text_is_each_pixel_formatted_on_its_line() {
-        // Every byte value in every channel, over more rows than two groups of bands
-        // written at once hold.
+    /// An image with every byte value in every channel, over more rows than two groups of
+    /// `P3` bands written at once hold, and its `P3` file as `format!` writes it.
+    fn plain_image_and_text() -> (Image, String) {
         let (w, h) = (97, (2 * PLAIN_BANDS_AT_ONCE * PLAIN_BAND_ROWS + 11) as u32);
         let mut image = Image::new(w, h, OutputFormat::Ppm(PpmStyle::Plain), Encoding::Linear);
         let value = |x: u32, y: u32, k: u32| (x * 7 + y * 13 + k * 101) % 256;
@@ -701,11 +700,60 @@ mod tests {
                 expected.push_str(&format!("{r} {g} {b}\n"));
             }
         }
+        (image, expected)
+    }
+
+    #[test]
+    fn plain_ppm_text_is_each_pixel_formatted_on_its_line() {
+        let (image, expected) = plain_image_and_text();
         assert_eq!(String::from_utf8(image.to_bytes()).unwrap(), expected);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("out.ppm");
         image.write(&path).unwrap();
         assert_eq!(std::fs::read_to_string(&path).unwrap(), expected);
+    }
+
+    #[test]
+    fn plain_ppm_text_is_written_whole_however_the_writer_splits_it_and_stops_at_an_error() {
+        let (image, expected) = plain_image_and_text();
+        let Pixels::Rgb8(bytes) = &image.pixels else {
+            unreachable!("a PPM image holds bytes")
+        };
+        let (w, h) = (image.width as usize, image.height as usize);
+        for limit in [1, 7, 4096, usize::MAX] {
+            let mut writer = Trickle {
+                written: Vec::new(),
+                limit,
+                calls: 0,
+            };
+            write_plain_text(&mut writer, w, h, bytes).unwrap();
+            assert!(
+                writer.written == expected.as_bytes(),
+                "at most {limit} bytes a call"
+            );
+        }
+        // A writer that fails after `room` bytes: in the header, in the first group of
+        // bands, in the last.
+        struct Full {
+            room: usize,
+        }
+        impl Write for Full {
+            fn write(&mut self, bytes: &[u8]) -> io::Result<usize> {
+                if self.room == 0 {
+                    return Err(io::Error::other("no room"));
+                }
+                let n = bytes.len().min(self.room);
+                self.room -= n;
+                Ok(n)
+            }
+            fn flush(&mut self) -> io::Result<()> {
+                Ok(())
+            }
+        }
+        for room in [3, 1000, expected.len() - 1] {
+            let error = write_plain_text(&mut Full { room }, w, h, bytes).unwrap_err();
+            assert_eq!(error.to_string(), "no room", "room for {room} bytes");
+        }
     }
 
     #[test]
