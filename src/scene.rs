@@ -1125,7 +1125,7 @@ fn build_triangles(
     // blocks its range touches. Testing a neighbouring leaf's triangles on the way
     // is harmless (they are real triangles of the scene) and keeps blocks full.
     let block = BLOCK as u32;
-    let params = preset.params(TRIANGLES_PER_LEAF);
+    let params = preset.for_triangles(kept.len()).params(TRIANGLES_PER_LEAF);
     let leaf_blocks = |first, count| {
         let (first_block, last_block) = (first / block, (first + count - 1) / block);
         (first_block, last_block - first_block + 1)
