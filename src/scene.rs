@@ -801,7 +801,7 @@ impl Scene {
                 crate::simd::any(
                     &self.triangles.bvh,
                     blocks,
-                    &self.triangles.hint_roots,
+                    self.triangles.hint_roots(),
                     ray,
                     hint,
                 )
@@ -841,7 +841,7 @@ impl Scene {
             && b < blocks.len()
         {
             found = stopped(b);
-            let root = self.triangles.hint_roots[b];
+            let root = self.triangles.hint_roots()[b];
             if found.is_none() && root != 0 {
                 found = search(root);
             }
@@ -1072,8 +1072,10 @@ pub struct TriangleTree {
     blocks: Vec<TriangleBlock>,
     bvh: Bvh<f32>,
     /// For each block, the node [`HINT_LEVELS`] above its leaf: the subtree a hinted
-    /// any-hit query searches after the hint's own block.
-    hint_roots: Vec<u32>,
+    /// any-hit query searches after the hint's own block. Made by the first any-hit
+    /// query (a pass over the tree on one thread, 2 ms for a million triangles), which
+    /// `depth` and `normal` jobs never ask.
+    hint_roots: std::sync::OnceLock<Vec<u32>>,
     /// Triangles it was built from.
     len: usize,
 }
@@ -1082,13 +1084,23 @@ impl TriangleTree {
     /// Builds the tree of `triangles` (which may be empty) with `preset`.
     pub fn build(triangles: &[[[f32; 3]; 3]], preset: BuildPreset) -> TriangleTree {
         let (blocks, bvh) = build_triangles(triangles, preset);
-        let hint_roots = bvh.leaf_ancestors(blocks.len(), HINT_LEVELS);
         TriangleTree {
             blocks,
             bvh,
-            hint_roots,
+            hint_roots: std::sync::OnceLock::new(),
             len: triangles.len(),
         }
+    }
+
+    /// Each block's hint subtree, made by the first call.
+    fn hint_roots(&self) -> &[u32] {
+        self.hint_roots
+            .get_or_init(|| self.bvh.leaf_ancestors(self.blocks.len(), HINT_LEVELS))
+    }
+
+    /// Whether an any-hit query has made the blocks' hint subtrees yet.
+    pub fn hint_roots_made(&self) -> bool {
+        self.hint_roots.get().is_some()
     }
 
     /// Whether the AVX2 kernels' fixed stack holds any traversal of this tree.
@@ -1101,7 +1113,7 @@ impl TriangleTree {
         &self.blocks
     }
 
-    /// Bytes of blocks, tree nodes and hint roots.
+    /// Bytes of blocks, tree nodes and hint roots (counted whether made yet or not).
     pub fn memory_bytes(&self) -> usize {
         self.blocks.len() * (std::mem::size_of::<TriangleBlock>() + std::mem::size_of::<u32>())
             + self.bvh.memory_bytes()
