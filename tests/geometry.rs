@@ -171,3 +171,63 @@ fn a_matrix_and_the_equivalent_scale_rotate_translate_agree() {
         srt.at(24, 24)[0]
     );
 }
+
+#[test]
+fn manifest_numbers_are_the_float64s_they_denote() {
+    // Random float64s across twenty binary orders of magnitude, written as Rust (and
+    // Python) print them, the shortest decimal that reads back as the same float; and
+    // one that a fast but inexact decimal reader takes a unit in the last place low.
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut values = vec![1.6764843644182825, -0.1, 2.0e-3, 123456.789];
+    while values.len() < 4000 {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        let unit = (state >> 11) as f64 / (1u64 << 53) as f64;
+        values.push((2.0 * unit - 1.0) * 2f64.powi((state & 31) as i32 - 10));
+    }
+    // Four numbers per sphere: a centre and a radius (made positive).
+    let radius = |r: f64| r.abs().max(1e-3);
+    let spheres: Vec<String> = values
+        .chunks(4)
+        .map(|v| {
+            format!(
+                r#"{{"center": [{}, {}, {}], "radius": {}}}"#,
+                v[0],
+                v[1],
+                v[2],
+                radius(v[3])
+            )
+        })
+        .collect();
+    let json = format!(
+        r#"{{"image": {{"width": 2, "height": 2}}, "camera": {{"look_from": [{}, {}, {}], "look_at": [0, 0, 0]}},
+            "spheres": [{}]}}"#,
+        values[0],
+        values[1],
+        values[2],
+        spheres.join(", ")
+    );
+    let manifest = raybatch::Manifest::parse(json.as_bytes(), std::path::Path::new("m.json"))
+        .expect("a valid manifest");
+    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for (i, (sphere, v)) in manifest.spheres.iter().zip(values.chunks(4)).enumerate() {
+        let read = [
+            sphere.center.x,
+            sphere.center.y,
+            sphere.center.z,
+            sphere.radius,
+        ];
+        let written = [v[0], v[1], v[2], radius(v[3])];
+        assert_eq!(
+            bits(&read),
+            bits(&written),
+            "sphere {i}: {spheres}",
+            spheres = spheres[i]
+        );
+    }
+    assert_eq!(manifest.spheres.len(), values.len() / 4);
+    // With `look_at`, the camera sits exactly at `look_from`.
+    let origin = manifest.camera.frame.origin;
+    assert_eq!(bits(&origin.to_array()), bits(&values[..3]));
+}
