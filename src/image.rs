@@ -122,7 +122,8 @@ impl Image {
         }
     }
 
-    /// Writes the image to `path` atomically (see [`write_atomically`]).
+    /// Writes the image to `path` atomically (see [`write_atomically`]). `P3` text is
+    /// formatted a group of bands at a time as the file is written ([`PLAIN_BANDS_AT_ONCE`]).
     pub fn write(&self, path: &Path) -> io::Result<()> {
         match (&self.pixels, self.format) {
             (Pixels::Rgb8(bytes), OutputFormat::Ppm(PpmStyle::Plain)) => {
@@ -138,9 +139,10 @@ impl Image {
 /// Rows of `P3` text formatted by one task.
 const PLAIN_BAND_ROWS: usize = 8;
 
-/// Bands of `P3` text formatted together and then written, before the next: their text is
-/// still in the cache when the kernel copies it, and their buffers are reused, instead of
-/// the whole text (14 MB for a full-HD image) going first to memory never touched before.
+/// Bands of `P3` text formatted together, as one group; a group is written while the next
+/// is formatted. Its text is still in the cache when the kernel copies it, and the two
+/// groups' buffers are reused, instead of the whole text (14 MB for a full-HD image)
+/// going first to memory never touched before.
 const PLAIN_BANDS_AT_ONCE: usize = 8;
 
 /// The `P3` header of a `width` x `height` image.
