@@ -123,7 +123,7 @@ impl Image {
     }
 
     /// Writes the image to `path` atomically (see [`write_atomically`]). `P3` text is
-    /// formatted a group of bands at a time as the file is written ([`PLAIN_BANDS_AT_ONCE`]).
+    /// formatted a group of bands at a time as the file is written.
     pub fn write(&self, path: &Path) -> io::Result<()> {
         match (&self.pixels, self.format) {
             (Pixels::Rgb8(bytes), OutputFormat::Ppm(PpmStyle::Plain)) => {
