@@ -1073,8 +1073,8 @@ pub struct TriangleTree {
     bvh: Bvh<f32>,
     /// For each block, the node [`HINT_LEVELS`] above its leaf: the subtree a hinted
     /// any-hit query searches after the hint's own block. Made by the first any-hit
-    /// query (a pass over the tree on one thread, 2 ms for a million triangles), which
-    /// `depth` and `normal` jobs never ask.
+    /// query (a pass over the tree on one thread), which `depth` and `normal` jobs never
+    /// ask.
     hint_roots: std::sync::OnceLock<Vec<u32>>,
     /// Triangles it was built from.
     len: usize,

@@ -1,8 +1,8 @@
 //! What a job does not do because its scene does not need it: no mesh read or triangle
 //! tree without meshes, no sphere tree without spheres, no closest-hit search or normals
 //! for `hit`, a mesh shared by a batch read and built once, the last job's meshes let go
-//! before its build, no any-hit hint subtrees until an any-hit query. (glTF images never being
-//! decoded is `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
+//! before its build, no any-hit hint subtrees until an any-hit query. (glTF images never
+//! being decoded is `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
 
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
