@@ -440,7 +440,7 @@ fn trace_pass<T: Tracer>(tracer: &T, rays: &[Ray], query: Query) -> usize {
 
 fn count_hits<T: Tracer>(tracer: &T, rays: &[Ray], hit: impl Fn(&T, &Ray) -> bool + Sync) -> usize {
     rays.par_chunks(4096)
-        .map(|chunk| chunk.iter().filter(|r| hit(tracer, r)).count())
+        .map(|chunk| count_prefetched(chunk, |r| hit(tracer, r)))
         .sum()
 }
 
@@ -449,12 +449,44 @@ fn count_hinted_hits<T: Tracer>(tracer: &T, rays: &[Ray]) -> usize {
     rays.par_chunks(4096)
         .map(|chunk| {
             let mut hint = AnyHitHint::default();
-            chunk
-                .iter()
-                .filter(|r| tracer.any_hit_hinted(r, &mut hint))
-                .count()
+            count_prefetched(chunk, |r| tracer.any_hit_hinted(r, &mut hint))
         })
         .sum()
+}
+
+/// How far ahead of the ray being traced the single-ray passes ask the cache for the
+/// next: [`RAYS_AHEAD`] rays (a kilobyte). A renderer makes its camera rays in registers;
+/// the bench reads them from an array of 130 MB at full HD, and one ray's query is too
+/// long for the CPU to reach the next ray's load on its own. Unasked, the array's
+/// memory latency was a shared cost in every column, and on one host the larger part of
+/// a ray that misses the mesh's box (27 against 10 ns on ogre; BENCHMARKS.md, history).
+const RAYS_AHEAD: usize = 16;
+
+/// How many rays of `chunk` `hit` holds for, one by one in order, each ray asked of the
+/// cache [`RAYS_AHEAD`] rays before its turn (the same for every tracer).
+#[inline(always)]
+fn count_prefetched(chunk: &[Ray], mut hit: impl FnMut(&Ray) -> bool) -> usize {
+    ask_cache_for(&chunk[..chunk.len().min(RAYS_AHEAD)]);
+    let mut count = 0;
+    for (i, ray) in chunk.iter().enumerate() {
+        if let Some(next) = chunk.get(i + RAYS_AHEAD) {
+            ask_cache_for(std::slice::from_ref(next));
+        }
+        count += usize::from(hit(ray));
+    }
+    count
+}
+
+/// Asks the cache for the memory of `rays` without waiting for it.
+#[inline(always)]
+fn ask_cache_for(rays: &[Ray]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let range = rays.as_ptr_range();
+        crate::simd::prefetch(range.start as usize, range.end as usize);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = rays;
 }
 
 /// Hits counted with the batch queries, 64 rays at a time.
@@ -462,7 +494,12 @@ fn count_batch_hits<T: Tracer>(tracer: &T, rays: &[Ray], any: bool) -> usize {
     rays.par_chunks(4096)
         .map(|chunk| {
             let mut count = 0;
-            for group in chunk.chunks(64) {
+            let mut groups = chunk.chunks(64).peekable();
+            while let Some(group) = groups.next() {
+                // The next group's rays are fetched while this one is traced.
+                if let Some(next) = groups.peek() {
+                    ask_cache_for(next);
+                }
                 if any {
                     let mut hits = [false; 64];
                     tracer.any_hits(group, &mut hits[..group.len()]);
