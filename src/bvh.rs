@@ -278,21 +278,18 @@ pub fn intersect_node<T: Scalar>(node: &Node<T>, ray: &BoxRay<T>, tmax: T) -> (u
     (mask, entry)
 }
 
-/// Triangles from which the default preset leaves out reinsertion
-/// ([`BuildPreset::for_triangles`]): half a million.
-pub const REINSERTION_BELOW: usize = 1 << 19;
-
 /// Named build presets, from fastest build to fastest traversal.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum BuildPreset {
-    /// PLOC with the smallest search radius and no reinsertion.
-    Fastest,
-    /// obvhs' `very_fast_build`: the smallest search radius and a little reinsertion; the
-    /// default. Against `Fast` it builds about a quarter faster and traces camera rays
-    /// a few per cent slower (DEVELOPERS.md, "Performance notes"), which pays whenever a
-    /// job traces fewer rays than several times its triangles. Trees of half a million
-    /// triangles or more leave out its reinsertion ([`BuildPreset::for_triangles`]).
+    /// obvhs' `fastest_build`: PLOC with the smallest search radius and no reinsertion;
+    /// the default. `VeryFast`'s 1% reinsertion was a fifth of a scanned model's build
+    /// and a third of a sphere field's, for single rays 1–9% faster (depending on the
+    /// mesh and the CPU) and camera-ray packets no faster (DEVELOPERS.md, "Build").
     #[default]
+    Fastest,
+    /// obvhs' `very_fast_build`: the smallest search radius and a little reinsertion.
+    /// Against `Fast` it builds about a quarter faster and traces camera rays a few per
+    /// cent slower.
     VeryFast,
     /// obvhs' `fast_build`: a wider PLOC search.
     Fast,
@@ -319,34 +316,6 @@ impl BuildPreset {
             BuildPreset::Fast => "fast",
             BuildPreset::Medium => "medium",
             BuildPreset::Slow => "slow",
-        }
-    }
-
-    /// The preset a tree of spheres is built with under this one: the same, except
-    /// [`BuildPreset::Fastest`] for the default [`BuildPreset::VeryFast`]. Their one
-    /// difference, a little reinsertion, was a third of the sphere field's build and gave
-    /// its tracing nothing measurable: in two alternating runs of `raybatch bench --embree
-    /// --only spheres`, the build went from 1.10–1.12x Embree's to 0.47–0.80x, single rays
-    /// and packets moved within 2% either way, and the 100k-sphere job took 83–84 ms
-    /// instead of 86.
-    pub fn for_spheres(self) -> BuildPreset {
-        match self {
-            BuildPreset::VeryFast => BuildPreset::Fastest,
-            other => other,
-        }
-    }
-
-    /// The preset a tree of `count` triangles is built with under this one: the same,
-    /// except [`BuildPreset::Fastest`] for the default [`BuildPreset::VeryFast`] from
-    /// [`REINSERTION_BELOW`] triangles up. On the million-triangle torus of `raybatch
-    /// bench` the default's reinsertion was 29 ms of a 201 ms build (`build_s` of the
-    /// full-HD `depth` job, 7 alternating runs) and moved no throughput of the bench by
-    /// more than its noise; on the scans it costs 2–4 ms, and buys ogre's single rays 7–9%
-    /// (DEVELOPERS.md, "Build").
-    pub fn for_triangles(self, count: usize) -> BuildPreset {
-        match self {
-            BuildPreset::VeryFast if count >= REINSERTION_BELOW => BuildPreset::Fastest,
-            other => other,
         }
     }
 
@@ -1138,31 +1107,26 @@ mod tests {
     }
 
     #[test]
-    fn large_triangle_trees_leave_out_the_default_reinsertion_and_nothing_else() {
-        for preset in BuildPreset::ALL {
-            assert_eq!(preset.for_triangles(REINSERTION_BELOW - 1), preset);
-            let large = preset.for_triangles(REINSERTION_BELOW);
-            if preset != BuildPreset::VeryFast {
-                assert_eq!(large, preset);
-                continue;
-            }
-            // Of what the build reads (obvhs' own presets also differ in fields it does
-            // not read), only the reinsertion differs.
-            let read = |p: &BvhBuildParams| {
-                format!(
-                    "{:?} {} {:?} {} {}",
-                    p.ploc_search_distance,
-                    p.search_depth_threshold,
-                    p.sort_precision,
-                    p.max_prims_per_leaf,
-                    p.pre_split
-                )
-            };
-            let (without, with) = (large.params(4), preset.params(4));
-            assert_eq!(read(&without), read(&with));
-            assert_eq!(without.reinsertion_batch_ratio, 0.0);
-            assert!(with.reinsertion_batch_ratio > 0.0);
-        }
+    fn the_default_preset_is_very_fast_without_its_reinsertion() {
+        // Of what the build reads (obvhs' own presets also differ in fields it does not
+        // read), only the reinsertion differs.
+        let read = |p: &BvhBuildParams| {
+            format!(
+                "{:?} {} {:?} {} {}",
+                p.ploc_search_distance,
+                p.search_depth_threshold,
+                p.sort_precision,
+                p.max_prims_per_leaf,
+                p.pre_split
+            )
+        };
+        let (default, very_fast) = (
+            BuildPreset::default().params(4),
+            BuildPreset::VeryFast.params(4),
+        );
+        assert_eq!(read(&default), read(&very_fast));
+        assert_eq!(default.reinsertion_batch_ratio, 0.0);
+        assert!(very_fast.reinsertion_batch_ratio > 0.0);
     }
 
     #[test]

@@ -1137,7 +1137,7 @@ fn build_triangles(
     // blocks its range touches. Testing a neighbouring leaf's triangles on the way
     // is harmless (they are real triangles of the scene) and keeps blocks full.
     let block = BLOCK as u32;
-    let params = preset.for_triangles(kept.len()).params(TRIANGLES_PER_LEAF);
+    let params = preset.params(TRIANGLES_PER_LEAF);
     let leaf_blocks = |first, count| {
         let (first_block, last_block) = (first / block, (first + count - 1) / block);
         (first_block, last_block - first_block + 1)
@@ -1183,7 +1183,7 @@ fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u
             c.map(|x| (x + s.radius).next_up()),
         )
     };
-    let params = preset.for_spheres().params(SPHERES_PER_LEAF);
+    let params = preset.params(SPHERES_PER_LEAF);
     let (tree, ids) = Bvh::build_from(
         spheres.len(),
         box_of,

@@ -709,7 +709,7 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
         }
     }
     for triangles in [soup_triangles, grid.triangles, ico.triangles] {
-        for preset in [BuildPreset::VeryFast, BuildPreset::Medium] {
+        for preset in [BuildPreset::default(), BuildPreset::Medium] {
             let mut scene = Scene::build_with(
                 &SceneGeometry {
                     triangles: triangles.clone(),
@@ -807,7 +807,7 @@ fn the_avx2_sphere_tree_gives_the_same_hits_as_the_scalar_path() {
             });
         }
     }
-    for preset in [BuildPreset::VeryFast, BuildPreset::Medium] {
+    for preset in [BuildPreset::default(), BuildPreset::Medium] {
         let mut scene = Scene::build_with(
             &SceneGeometry {
                 spheres: spheres.clone(),
