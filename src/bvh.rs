@@ -348,10 +348,11 @@ pub struct Bvh<T> {
 
 impl<T: Scalar> Bvh<T> {
     /// Builds the tree over primitives with boxes `boxes`: obvhs' PLOC builder (one
-    /// primitive per leaf) and reinsertion optimizer shape a binary tree, which is
-    /// collapsed into 8-wide nodes with leaves of at most `params.max_prims_per_leaf`
-    /// primitives, each leaf costing `leaf_cost` ([`crate::collapse`]). Each slot's box is
-    /// the union of its primitives' boxes, exactly.
+    /// primitive per leaf) and, where `params` asks for it, its reinsertion optimizer
+    /// shape a binary tree, which is collapsed into 8-wide nodes with leaves of at most
+    /// `params.max_prims_per_leaf` primitives, each leaf costing `leaf_cost`
+    /// ([`crate::collapse`]). Each slot's box is the union of its primitives' boxes,
+    /// exactly.
     ///
     /// Returns the tree and the primitives in leaf order: a leaf holds the primitives at
     /// positions `first..first + count` of that order, and refers to the items
