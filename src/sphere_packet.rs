@@ -6,8 +6,9 @@
 //! in float64, they bound every ray's own float64 values, rounding being monotonic). A
 //! node is therefore skipped only if every ray's own robust test would skip it. A leaf's
 //! box is then tested ray by ray, four rays per instruction, with exactly the single-ray
-//! test, and the spheres of each entering ray with [`Sphere::intersect`]. Each ray gets the
-//! hit its own traversal finds, except that of two spheres at the same `t` (to within
+//! test, and its spheres against the entering rays four at a time, with the operations of
+//! [`Sphere::intersect`] lane by lane (so the same bits). Each ray gets the hit its own
+//! traversal finds, except that of two spheres at the same `t` (to within
 //! rounding) which one is reported may differ, as the visiting order does.
 
 use std::arch::x86_64::*;
@@ -43,13 +44,88 @@ impl Groups {
 }
 
 /// A packet's per-ray values that stay fixed while it is traced, four lanes per group:
-/// origin, reciprocal direction (near and far planes), `tmin`.
+/// origin, reciprocal direction (near and far planes), `tmin`; and for the spheres' test,
+/// direction and its squared length.
 #[repr(C)]
 struct RayLanes {
     origin: [Groups; 3],
     inv: [Groups; 3],
     inv_far: [Groups; 3],
     tmin: Groups,
+    direction: [Groups; 3],
+    length2: Groups,
+}
+
+/// [`Sphere::intersect`] of four rays at once, one per lane: whether each hits `sphere`
+/// with `tmin < t < tmax`, as an all-ones lane, and that `t`. The same operations in the
+/// same order as the scalar test (which has no fused operations), so the same bits;
+/// `length2` is `direction · direction`, which the scalar test computes per call.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn sphere_hits(
+    sphere: &Sphere,
+    origin: &[__m256d; 3],
+    direction: &[__m256d; 3],
+    length2: __m256d,
+    tmin: __m256d,
+    tmax: __m256d,
+) -> (__m256d, __m256d) {
+    // Written out rather than in closures: closures here would not inherit AVX2.
+    macro_rules! dot {
+        ($u:expr, $v:expr) => {
+            _mm256_add_pd(
+                _mm256_add_pd(_mm256_mul_pd($u[0], $v[0]), _mm256_mul_pd($u[1], $v[1])),
+                _mm256_mul_pd($u[2], $v[2]),
+            )
+        };
+    }
+    macro_rules! between {
+        ($t:expr) => {
+            _mm256_and_pd(
+                _mm256_cmp_pd::<_CMP_GT_OQ>($t, tmin),
+                _mm256_cmp_pd::<_CMP_LT_OQ>($t, tmax),
+            )
+        };
+    }
+    let c = sphere.center;
+    let r2 = sphere.radius * sphere.radius;
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        let f = [
+            _mm256_sub_pd(origin[0], _mm256_set1_pd(c.x)),
+            _mm256_sub_pd(origin[1], _mm256_set1_pd(c.y)),
+            _mm256_sub_pd(origin[2], _mm256_set1_pd(c.z)),
+        ];
+        let b = dot!(f, direction);
+        let along = _mm256_div_pd(b, length2);
+        let l = [
+            _mm256_sub_pd(f[0], _mm256_mul_pd(along, direction[0])),
+            _mm256_sub_pd(f[1], _mm256_mul_pd(along, direction[1])),
+            _mm256_sub_pd(f[2], _mm256_mul_pd(along, direction[2])),
+        ];
+        let r2 = _mm256_set1_pd(r2);
+        let discriminant = _mm256_sub_pd(r2, dot!(l, l));
+        // The scalar test goes on unless `discriminant <= 0`: greater, or NaN.
+        let crosses = _mm256_cmp_pd::<_CMP_NLE_UQ>(discriminant, _mm256_setzero_pd());
+        let c = _mm256_sub_pd(dot!(f, f), r2);
+        let sign = _mm256_set1_pd(-0.0);
+        let root = _mm256_sqrt_pd(_mm256_mul_pd(length2, discriminant));
+        // `−b − root.copysign(b)`: negation and copysign act on the sign bit alone.
+        let signed = _mm256_or_pd(_mm256_andnot_pd(sign, root), _mm256_and_pd(sign, b));
+        let q = _mm256_sub_pd(_mm256_xor_pd(b, sign), signed);
+        let (t0, t1) = (_mm256_div_pd(c, q), _mm256_div_pd(q, length2));
+        let ordered = _mm256_cmp_pd::<_CMP_LE_OQ>(t0, t1);
+        let near = _mm256_blendv_pd(t1, t0, ordered);
+        let far = _mm256_blendv_pd(t0, t1, ordered);
+        let (near_inside, far_inside) = (between!(near), between!(far));
+        let t = _mm256_blendv_pd(far, near, near_inside);
+        (
+            _mm256_and_pd(crosses, _mm256_or_pd(near_inside, far_inside)),
+            t,
+        )
+    }
 }
 
 /// A float64 at `p` in all four lanes.
@@ -155,6 +231,7 @@ unsafe fn trace<const ANY: bool>(
             lanes(|r| r.direction.z),
         ];
         let t = lanes(|r| r.tmin);
+        let mut length2 = _mm256_setzero_pd();
         for a in 0..3 {
             let i = _mm256_div_pd(_mm256_set1_pd(1.0), d[a]);
             let f = _mm256_mul_pd(i, exit_scale);
@@ -164,7 +241,15 @@ unsafe fn trace<const ANY: bool>(
                 _mm256_store_pd((&raw mut (*lanes_of).origin[a].0[g]).cast(), o[a]);
                 _mm256_store_pd((&raw mut (*lanes_of).inv[a].0[g]).cast(), i);
                 _mm256_store_pd((&raw mut (*lanes_of).inv_far[a].0[g]).cast(), f);
+                _mm256_store_pd((&raw mut (*lanes_of).direction[a].0[g]).cast(), d[a]);
             }
+            // `direction · direction` in the scalar sum's order: x² + y², then + z².
+            let square = _mm256_mul_pd(d[a], d[a]);
+            length2 = if a == 0 {
+                square
+            } else {
+                _mm256_add_pd(length2, square)
+            };
             let signs = _mm256_movemask_pd(d[a]);
             signs_any[a] |= signs;
             signs_all[a] &= signs;
@@ -177,7 +262,10 @@ unsafe fn trace<const ANY: bool>(
         }
         tmin_lo = _mm256_min_pd(t, tmin_lo);
         // SAFETY: as above.
-        unsafe { _mm256_store_pd((&raw mut (*lanes_of).tmin.0[g]).cast(), t) };
+        unsafe {
+            _mm256_store_pd((&raw mut (*lanes_of).tmin.0[g]).cast(), t);
+            _mm256_store_pd((&raw mut (*lanes_of).length2.0[g]).cast(), length2);
+        }
     }
     // SAFETY: every field's every group was written in the loop.
     let fixed = unsafe { fixed.assume_init_ref() };
@@ -186,6 +274,8 @@ unsafe fn trace<const ANY: bool>(
         inv,
         inv_far,
         tmin,
+        direction,
+        length2,
     } = fixed;
     if (0..3).any(|a| signs_any[a] != signs_all[a]) {
         return None;
@@ -297,28 +387,52 @@ unsafe fn trace<const ANY: bool>(
                     broadcast_pd, _mm256_sub_pd, _mm256_mul_pd, _mm256_max_pd, _mm256_min_pd,
                     _mm256_cmp_pd }
                 };
-                let mut hits = _mm256_movemask_pd(entered) as u32;
-                visits.entries += hits.count_ones();
-                while hits != 0 {
-                    let l = hits.trailing_zeros() as usize;
-                    hits &= hits - 1;
-                    let k = g * 4 + l;
-                    for i in first..first + count {
-                        let best = &mut horizon.0[g][l];
-                        if let Some(t) = spheres[i as usize].intersect(&rays[k], *best) {
-                            nearest[k] = i;
-                            improved = true;
-                            if ANY {
-                                // Reported now: the ray leaves the packet.
-                                found(k, t, i);
-                                *best = f64::NEG_INFINITY;
-                                live -= 1;
-                                break;
-                            }
-                            *best = t;
+                let entering = _mm256_movemask_pd(entered) as u32;
+                visits.entries += entering.count_ones();
+                if entering == 0 {
+                    continue;
+                }
+                // Then the leaf's spheres in order against the entering rays, four at a
+                // time, each ray's horizon following its hits as the scalar loop's would.
+                let o = [0, 1, 2].map(|a| lane(&origin[a]));
+                let d = [0, 1, 2].map(|a| lane(&direction[a]));
+                let (length2, ray_tmin) = (lane(length2), lane(tmin));
+                let mut best = lane(&horizon);
+                for i in first..first + count {
+                    // SAFETY: AVX2 is enabled in this function.
+                    let (hit, t) = unsafe {
+                        sphere_hits(&spheres[i as usize], &o, &d, length2, ray_tmin, best)
+                    };
+                    let hit = _mm256_and_pd(hit, entered);
+                    let mut hits = _mm256_movemask_pd(hit) as u32;
+                    if hits == 0 {
+                        continue;
+                    }
+                    improved = true;
+                    // A ray that found a hit with `ANY` is reported now and leaves the
+                    // packet: its horizon, −∞, admits nothing more.
+                    let next = if ANY {
+                        _mm256_set1_pd(f64::NEG_INFINITY)
+                    } else {
+                        t
+                    };
+                    best = _mm256_blendv_pd(best, next, hit);
+                    let mut ts = [0f64; 4];
+                    // SAFETY: `ts` holds four doubles.
+                    unsafe { _mm256_storeu_pd(ts.as_mut_ptr(), t) };
+                    while hits != 0 {
+                        let l = hits.trailing_zeros() as usize;
+                        hits &= hits - 1;
+                        let k = g * 4 + l;
+                        nearest[k] = i;
+                        if ANY {
+                            found(k, ts[l], i);
+                            live -= 1;
                         }
                     }
                 }
+                // SAFETY: group `g` is 32-byte aligned and four doubles.
+                unsafe { _mm256_store_pd(horizon.0[g].as_mut_ptr(), best) };
             }
             if improved {
                 // SAFETY: AVX2 is enabled in this function.
@@ -352,5 +466,123 @@ unsafe fn trace<const ANY: bool>(
             return Some(visits);
         };
         current = next;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_random::XorShift;
+    use glam::DVec3;
+
+    /// [`sphere_hits`] of four rays (direction, squared length and `tmin` taken from
+    /// each), as the scalar test's answers.
+    #[target_feature(enable = "avx2")]
+    fn four_at_once(sphere: &Sphere, rays: &[Ray; 4], tmax: [f64; 4]) -> [Option<f64>; 4] {
+        let lanes = |x: &dyn Fn(&Ray) -> f64| {
+            _mm256_setr_pd(x(&rays[0]), x(&rays[1]), x(&rays[2]), x(&rays[3]))
+        };
+        let origin = [
+            lanes(&|r| r.origin.x),
+            lanes(&|r| r.origin.y),
+            lanes(&|r| r.origin.z),
+        ];
+        let direction = [
+            lanes(&|r| r.direction.x),
+            lanes(&|r| r.direction.y),
+            lanes(&|r| r.direction.z),
+        ];
+        let length2 = lanes(&|r| r.direction.dot(r.direction));
+        let tmin = lanes(&|r| r.tmin);
+        let tmax = _mm256_setr_pd(tmax[0], tmax[1], tmax[2], tmax[3]);
+        // SAFETY: AVX2 is enabled in this function.
+        let (hit, t) = unsafe { sphere_hits(sphere, &origin, &direction, length2, tmin, tmax) };
+        let (mut hits, mut ts) = ([0f64; 4], [0f64; 4]);
+        // SAFETY: both hold four doubles.
+        unsafe {
+            _mm256_storeu_pd(hits.as_mut_ptr(), hit);
+            _mm256_storeu_pd(ts.as_mut_ptr(), t);
+        }
+        [0, 1, 2, 3].map(|l| (hits[l].to_bits() != 0).then_some(ts[l]))
+    }
+
+    #[test]
+    fn four_rays_at_once_hit_a_sphere_bit_for_bit_as_one_at_a_time() {
+        if !crate::simd::available() {
+            return;
+        }
+        let mut random = XorShift::new(11);
+        let mut unit = || random.unit_f64();
+        let (mut hits, mut checked) = (0, 0);
+        for case in 0..40_000 {
+            let scale = 10f64.powi((case % 7) as i32 - 3);
+            let center = DVec3::new(unit() - 0.5, unit() - 0.5, unit() - 0.5) * 100.0 * scale;
+            let sphere = Sphere {
+                center,
+                radius: (0.01 + unit()) * scale,
+            };
+            let mut rays = [Ray {
+                origin: DVec3::ZERO,
+                direction: DVec3::X,
+                tmin: 0.0,
+                tmax: f64::INFINITY,
+            }; 4];
+            let mut tmax = [f64::INFINITY; 4];
+            for (l, ray) in rays.iter_mut().enumerate() {
+                // Aimed at points around the sphere: through it, grazing it or beside it;
+                // some from inside; directions not all of unit length, some with a zero.
+                let origin = match (case + l) % 5 {
+                    0 => center + (DVec3::new(unit(), unit(), unit()) - 0.5) * sphere.radius,
+                    _ => DVec3::new(unit() - 0.5, unit() - 0.5, unit() - 0.5) * 400.0 * scale,
+                };
+                let aim =
+                    center + (DVec3::new(unit(), unit(), unit()) - 0.5) * 2.0 * sphere.radius * 1.2;
+                let mut direction = (aim - origin) * (0.5 + unit());
+                if (case + l) % 11 == 0 {
+                    direction.y = 0.0;
+                }
+                *ray = Ray {
+                    origin,
+                    direction,
+                    tmin: if l == 3 { 1e-4 } else { 0.0 },
+                    tmax: f64::INFINITY,
+                };
+                // Horizons at, just around and far from the roots.
+                tmax[l] = match (case / 4 + l) % 4 {
+                    0 => f64::INFINITY,
+                    k => match sphere.roots(origin, direction) {
+                        Some((near, far)) => {
+                            let edge = if k == 3 { far } else { near };
+                            [edge, edge.next_up(), edge.next_down()][case % 3]
+                        }
+                        None => 1.0,
+                    },
+                };
+                if case % 13 == 0 {
+                    ray.tmin = sphere
+                        .roots(origin, direction)
+                        .map_or(0.0, |(near, _)| near);
+                }
+            }
+            // SAFETY: AVX2 is available (checked above).
+            let got = unsafe { four_at_once(&sphere, &rays, tmax) };
+            for l in 0..4 {
+                let want = sphere.intersect(&rays[l], tmax[l]);
+                assert_eq!(
+                    got[l].map(f64::to_bits),
+                    want.map(f64::to_bits),
+                    "case {case} lane {l}: {sphere:?} {:?} tmax {}",
+                    rays[l],
+                    tmax[l]
+                );
+                hits += usize::from(want.is_some());
+                checked += 1;
+            }
+        }
+        // The cases must exercise both answers.
+        assert!(
+            hits > checked / 5 && hits < checked * 4 / 5,
+            "{hits} of {checked}"
+        );
     }
 }
