@@ -109,6 +109,10 @@ unsafe fn sphere_hits(
         let discriminant = _mm256_sub_pd(r2, dot!(l, l));
         // The scalar test goes on unless `discriminant <= 0`: greater, or NaN.
         let crosses = _mm256_cmp_pd::<_CMP_NLE_UQ>(discriminant, _mm256_setzero_pd());
+        // Most tests miss: as the scalar test, stop before the square root and divisions.
+        if _mm256_movemask_pd(crosses) == 0 {
+            return (crosses, crosses);
+        }
         let c = _mm256_sub_pd(dot!(f, f), r2);
         let sign = _mm256_set1_pd(-0.0);
         let root = _mm256_sqrt_pd(_mm256_mul_pd(length2, discriminant));
