@@ -859,14 +859,6 @@ impl<T: Scalar> Part<T> {
     }
 }
 
-/// The float32 box obvhs needs for a primitive, rounded outward from exact float64 bounds.
-pub fn outward_f32(min: [f64; 3], max: [f64; 3]) -> Aabb {
-    Aabb::new(
-        glam::Vec3A::from_array(min.map(f32_at_most)),
-        glam::Vec3A::from_array(max.map(f32_at_least)),
-    )
-}
-
 /// The largest float32 not above `x` (NaN for NaN; −∞ below `f32::MIN`).
 pub fn f32_at_most(x: f64) -> f32 {
     let f = x as f32;
@@ -882,6 +874,29 @@ pub fn f32_at_least(x: f64) -> f32 {
     let f = x as f32;
     let step = i32::from(f64::from(f) < x);
     f32::from_bits(ordered(ordered(f.to_bits() as i32) + step) as u32)
+}
+
+/// The largest float32 strictly below `x`: `f32_at_most(x.next_down())`, a lower bound on
+/// any real value that `x` approximates to within an ulp, computed without
+/// `f64::next_down`'s branches on sign and zero (on real coordinates they are coin tosses).
+/// NaN for NaN; −∞ for −∞.
+pub fn f32_below(x: f64) -> f32 {
+    let f = x as f32;
+    let bits = f.to_bits() as i32;
+    // One step down unless `f` is already below `x` (or is −∞); from +0 two, over −0.
+    let step = i32::from((f64::from(f) >= x) & (f != f32::NEG_INFINITY));
+    let step = step + (step & i32::from(bits == 0));
+    f32::from_bits(ordered(ordered(bits) - step) as u32)
+}
+
+/// The smallest float32 strictly above `x`: `f32_at_least(x.next_up())`, as
+/// [`f32_below`]. NaN for NaN; +∞ for +∞.
+pub fn f32_above(x: f64) -> f32 {
+    let f = x as f32;
+    let bits = f.to_bits() as i32;
+    let step = i32::from((f64::from(f) <= x) & (f != f32::INFINITY));
+    let step = step + (step & i32::from(bits == i32::MIN));
+    f32::from_bits(ordered(ordered(bits) + step) as u32)
 }
 
 /// Float32 bits as integers in the floats' order (−0 just below +0), and back: the map is
@@ -996,6 +1011,53 @@ mod tests {
             );
         }
         assert!(f32_at_most(f64::NAN).is_nan() && f32_at_least(f64::NAN).is_nan());
+    }
+
+    #[test]
+    fn strict_f32_bounds_are_the_nearest_floats_past_the_next_float64() {
+        let mut xs = vec![
+            0.0,
+            -0.0,
+            f64::from_bits(1),
+            f64::MIN_POSITIVE,
+            1e-300,
+            1e-46,
+            f64::from(f32::from_bits(1)),
+            f64::from(f32::from_bits(1)) / 2.0,
+            f64::from(f32::MIN_POSITIVE),
+            f64::from(f32::MAX),
+            f64::from(f32::MAX) * (1.0 + 1e-12),
+            f64::from(f32::MAX.next_down()),
+            1e39,
+            f64::MAX,
+            f64::INFINITY,
+            1.0,
+            0.1,
+            1.0 + 1e-12,
+            f64::from(1.0f32.next_up()),
+        ];
+        let mut random = crate::test_random::XorShift::new(0x1234_5678_9abc_def1);
+        for k in 0..200_000 {
+            let state = random.next_u64();
+            xs.push(match k % 4 {
+                // Any sign, exponents from 2^-160 to 2^160.
+                0 | 1 => f64::from_bits(
+                    state & 0x800f_ffff_ffff_ffff | (863 + (state >> 54) % 320) << 52,
+                ),
+                // Float32 values and their float64 neighbours.
+                2 => f64::from(f32::from_bits(state as u32 & 0x7f7f_ffff)),
+                _ => f64::from(f32::from_bits(state as u32 & 0x7f7f_ffff)).next_up(),
+            });
+        }
+        let negated: Vec<f64> = xs.iter().map(|x| -x).collect();
+        xs.extend(negated);
+        for x in xs {
+            let (below, above) = (f32_below(x), f32_above(x));
+            let want = (f32_at_most(x.next_down()), f32_at_least(x.next_up()));
+            assert_eq!(below.to_bits(), want.0.to_bits(), "{x:e}: {below:e}");
+            assert_eq!(above.to_bits(), want.1.to_bits(), "{x:e}: {above:e}");
+        }
+        assert!(f32_below(f64::NAN).is_nan() && f32_above(f64::NAN).is_nan());
     }
 
     /// Boxes scattered over many scales, with shared and repeated coordinates.

@@ -1175,12 +1175,12 @@ fn build_triangles(
 
 fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u32>, Bvh<f64>) {
     let box_of = |i: usize| {
-        // Rounded outward: the true surface reaches exactly c ± r.
+        // Rounded outward past the float64 sums: the true surface reaches exactly c ± r.
         let s = &spheres[i];
         let c = s.center.to_array();
-        bvh::outward_f32(
-            c.map(|x| (x - s.radius).next_down()),
-            c.map(|x| (x + s.radius).next_up()),
+        Aabb::new(
+            Vec3A::from_array(c.map(|x| bvh::f32_below(x - s.radius))),
+            Vec3A::from_array(c.map(|x| bvh::f32_above(x + s.radius))),
         )
     };
     let params = preset.params(SPHERES_PER_LEAF);
