@@ -454,12 +454,12 @@ fn count_hinted_hits<T: Tracer>(tracer: &T, rays: &[Ray]) -> usize {
         .sum()
 }
 
-/// How far ahead of the ray being traced the single-ray passes ask the cache for the
-/// next: [`RAYS_AHEAD`] rays (a kilobyte). A renderer makes its camera rays in registers;
-/// the bench reads them from an array of 130 MB at full HD, and one ray's query is too
-/// long for the CPU to reach the next ray's load on its own. Unasked, the array's
-/// memory latency was a shared cost in every column, and on one host the larger part of
-/// a ray that misses the mesh's box (27 against 10 ns on ogre; BENCHMARKS.md, history).
+/// How many rays ahead of the one being traced the single-ray passes ask the cache for
+/// the next (16 rays: a kilobyte). A renderer makes its camera rays in registers; the
+/// bench reads them from an array of 130 MB at full HD, and one ray's query is too long
+/// for the CPU to reach the next ray's load on its own. Unasked, the array's memory
+/// latency was a cost shared by every column, and on the Intel host of BENCHMARKS.md
+/// most of the cost of a ray that misses the mesh's box (27 against 10 ns on ogre).
 const RAYS_AHEAD: usize = 16;
 
 /// How many rays of `chunk` `hit` holds for, one by one in order, each ray asked of the

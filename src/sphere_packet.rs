@@ -89,14 +89,14 @@ unsafe fn sphere_hits(
             )
         };
     }
-    let c = sphere.center;
+    let centre = sphere.center;
     let r2 = sphere.radius * sphere.radius;
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
         let f = [
-            _mm256_sub_pd(origin[0], _mm256_set1_pd(c.x)),
-            _mm256_sub_pd(origin[1], _mm256_set1_pd(c.y)),
-            _mm256_sub_pd(origin[2], _mm256_set1_pd(c.z)),
+            _mm256_sub_pd(origin[0], _mm256_set1_pd(centre.x)),
+            _mm256_sub_pd(origin[1], _mm256_set1_pd(centre.y)),
+            _mm256_sub_pd(origin[2], _mm256_set1_pd(centre.z)),
         ];
         let b = dot!(f, direction);
         let along = _mm256_div_pd(b, length2);
@@ -109,7 +109,8 @@ unsafe fn sphere_hits(
         let discriminant = _mm256_sub_pd(r2, dot!(l, l));
         // The scalar test goes on unless `discriminant <= 0`: greater, or NaN.
         let crosses = _mm256_cmp_pd::<_CMP_NLE_UQ>(discriminant, _mm256_setzero_pd());
-        // Most tests miss: as the scalar test, stop before the square root and divisions.
+        // Most tests miss: as the scalar test does, stop before the square root and the
+        // divisions.
         if _mm256_movemask_pd(crosses) == 0 {
             return (crosses, crosses);
         }
