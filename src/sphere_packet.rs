@@ -422,17 +422,21 @@ unsafe fn trace<const ANY: bool>(
                         t
                     };
                     best = _mm256_blendv_pd(best, next, hit);
+                    // With `ANY` the hits are reported now, else remembered for the end.
                     let mut ts = [0f64; 4];
-                    // SAFETY: `ts` holds four doubles.
-                    unsafe { _mm256_storeu_pd(ts.as_mut_ptr(), t) };
+                    if ANY {
+                        // SAFETY: `ts` holds four doubles.
+                        unsafe { _mm256_storeu_pd(ts.as_mut_ptr(), t) };
+                    }
                     while hits != 0 {
                         let l = hits.trailing_zeros() as usize;
                         hits &= hits - 1;
                         let k = g * 4 + l;
-                        nearest[k] = i;
                         if ANY {
                             found(k, ts[l], i);
                             live -= 1;
+                        } else {
+                            nearest[k] = i;
                         }
                     }
                 }
