@@ -283,8 +283,21 @@ fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
     }
 }
 
-/// Builds per tracer and scene; the median is reported.
+/// Builds per tracer and scene, at least; the median is reported. A tracer builds again
+/// while its builds have taken less than [`BUILD_SECONDS`] together, up to
+/// [`MOST_BUILDS`]: a build of a millisecond or two swings by half from one to the next on
+/// a shared machine, and a median of five of them swung as much from run to run.
 const BUILDS: usize = 5;
+/// See [`BUILDS`].
+const BUILD_SECONDS: f64 = 0.25;
+/// See [`BUILDS`].
+const MOST_BUILDS: usize = 200;
+
+/// Whether `times` (seconds) are builds enough ([`BUILDS`]).
+fn builds_enough(times: &[f64]) -> bool {
+    times.len() >= MOST_BUILDS
+        || (times.len() >= BUILDS && times.iter().sum::<f64>() >= BUILD_SECONDS)
+}
 
 /// The pixel-centre rays, in 8 × 8 groups of neighbouring pixels (as the renderer traces
 /// them), the same order for every tracer.
@@ -343,7 +356,7 @@ fn trace_scene(
         // Embree's torus build read 0.36–0.46 s against 0.23–0.29 s after ours; we have not
         // found why, and this is the order of the earlier tables.)
         let mut build_times = [vec![first_build], Vec::new()];
-        for _ in 1..BUILDS {
+        while !builds_enough(&build_times[0]) {
             let start = Instant::now();
             let built = Scene::build(&scene.geometry);
             build_times[0].push(start.elapsed().as_secs_f64());
@@ -351,7 +364,7 @@ fn trace_scene(
         }
         #[cfg(feature = "embree")]
         if options.embree {
-            for _ in 0..BUILDS {
+            while !builds_enough(&build_times[1]) {
                 drop(reference.take());
                 let start = Instant::now();
                 reference = Some(
