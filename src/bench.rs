@@ -991,7 +991,10 @@ mod tests {
         ] {
             let rays = width * height;
             let len = task_len(rays);
-            assert!(len % 64 == 0 && len <= 4096, "{width}x{height}: {len}");
+            assert!(
+                len.is_multiple_of(64) && len <= 4096,
+                "{width}x{height}: {len}"
+            );
             let tasks = rays.div_ceil(len);
             let busiest = (tasks.div_ceil(2) * len).min(rays);
             let share = busiest as f64 / (rays as f64 / 2.0);
@@ -999,7 +1002,10 @@ mod tests {
         }
         for rays in [0, 1, 63, 64, 65, 4097] {
             let len = task_len(rays);
-            assert!(len >= 64 && len % 64 == 0 && len <= 4096, "{rays}: {len}");
+            assert!(
+                len >= 64 && len.is_multiple_of(64) && len <= 4096,
+                "{rays}: {len}"
+            );
         }
     }
 }
