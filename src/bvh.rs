@@ -889,14 +889,10 @@ pub fn f32_below(x: f64) -> f32 {
     f32::from_bits(ordered(ordered(bits) - step) as u32)
 }
 
-/// The smallest float32 strictly above `x`: `f32_at_least(x.next_up())`, as
-/// [`f32_below`]. NaN for NaN; +∞ for +∞.
+/// The smallest float32 strictly above `x`: `f32_at_least(x.next_up())`, [`f32_below`]'s
+/// mirror (negation is exact in both formats). NaN for NaN; +∞ for +∞.
 pub fn f32_above(x: f64) -> f32 {
-    let f = x as f32;
-    let bits = f.to_bits() as i32;
-    let step = i32::from((f64::from(f) <= x) & (f != f32::INFINITY));
-    let step = step + (step & i32::from(bits == i32::MIN));
-    f32::from_bits(ordered(ordered(bits) + step) as u32)
+    -f32_below(-x)
 }
 
 /// Float32 bits as integers in the floats' order (−0 just below +0), and back: the map is
