@@ -1120,6 +1120,24 @@ impl TriangleTree {
     }
 }
 
+/// Triangles ahead of the one in hand that a pass over a scene's triangles asks the cache
+/// for. A pass with some work per triangle waited on memory, one triangle's lines at a
+/// time: asked for ahead, the 36 MB of a million triangles were read in less than half
+/// the time (DEVELOPERS.md, "Build").
+const READ_AHEAD: usize = 48;
+
+/// Asks the cache for triangle `i`, if there is one.
+#[inline(always)]
+fn prefetch_triangle(triangles: &[[[f32; 3]; 3]], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(t) = triangles.get(i) {
+        let start = std::ptr::from_ref(t) as usize;
+        crate::simd::prefetch(start, start + std::mem::size_of_val(t));
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (triangles, i);
+}
+
 fn build_triangles(
     triangles: &[[[f32; 3]; 3]],
     preset: BuildPreset,
@@ -1127,9 +1145,14 @@ fn build_triangles(
     // Triangles without area are never hit, so they are left out of the tree.
     let kept: Vec<u32> = (0..triangles.len() as u32)
         .into_par_iter()
-        .filter(|&i| !triangle::is_degenerate(&triangles[i as usize]))
+        .filter(|&i| {
+            prefetch_triangle(triangles, i as usize + READ_AHEAD);
+            !triangle::is_degenerate(&triangles[i as usize])
+        })
         .collect();
     let box_of = |k: usize| {
+        // Kept triangles are in input order, and each task of the build's takes a run.
+        prefetch_triangle(triangles, kept[k] as usize + READ_AHEAD);
         let [a, b, c] = triangles[kept[k] as usize].map(Vec3A::from);
         Aabb::new(a.min(b).min(c), a.max(b).max(c))
     };
@@ -1152,7 +1175,12 @@ fn build_triangles(
     let order: Vec<u32> = order.into_iter().map(|p| kept[p as usize]).collect();
     let blocks = order
         .par_chunks(BLOCK)
-        .map(|chunk| {
+        .enumerate()
+        .map(|(b, chunk)| {
+            let ahead = (b + READ_AHEAD / BLOCK) * BLOCK;
+            for &id in order.get(ahead..ahead + BLOCK).unwrap_or(&[]) {
+                prefetch_triangle(triangles, id as usize);
+            }
             let mut block = TriangleBlock {
                 v: [[[0.0; BLOCK]; 3]; 3],
                 ids: [0; BLOCK],
