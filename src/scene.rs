@@ -1120,10 +1120,10 @@ impl TriangleTree {
     }
 }
 
-/// Triangles ahead of the one in hand that a pass over a scene's triangles asks the cache
-/// for. A pass with some work per triangle waited on memory, one triangle's lines at a
-/// time: asked for ahead, the 36 MB of a million triangles were read in less than half
-/// the time (DEVELOPERS.md, "Build").
+/// How far ahead of the triangle in hand a pass over a scene's triangles asks the cache
+/// for one. A pass with some work per triangle waited on memory, one triangle's lines at
+/// a time: asked for ahead, the 36 MB of a million triangles were read in less than half
+/// the time (DEVELOPERS.md, "The build asks for triangles before it reads them").
 const READ_AHEAD: usize = 48;
 
 /// Asks the cache for triangle `i`, if there is one.
@@ -1151,7 +1151,8 @@ fn build_triangles(
         })
         .collect();
     let box_of = |k: usize| {
-        // Kept triangles are in input order, and each task of the build's takes a run.
+        // The leaves are made for runs of `k`, and kept triangles are in input order: the
+        // triangle `READ_AHEAD` past this one is soon in hand.
         prefetch_triangle(triangles, kept[k] as usize + READ_AHEAD);
         let [a, b, c] = triangles[kept[k] as usize].map(Vec3A::from);
         Aabb::new(a.min(b).min(c), a.max(b).max(c))
