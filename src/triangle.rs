@@ -358,12 +358,13 @@ mod tests {
         // product.
         let mut random = crate::test_random::XorShift::new(11);
         let mut coordinate = || random.below(9) as i64 - 4;
-        let (mut degenerate, mut cases) = (0, 0);
-        for _ in 0..20_000 {
+        let cases = 20_000;
+        let mut degenerate = 0;
+        for case in 0..cases {
             let a: [i64; 3] = std::array::from_fn(|_| coordinate());
             let b: [i64; 3] = std::array::from_fn(|_| coordinate());
             // Every third triangle has its third vertex on the line through the first two.
-            let c: [i64; 3] = if cases % 3 == 0 {
+            let c: [i64; 3] = if case % 3 == 0 {
                 let k = coordinate();
                 std::array::from_fn(|i| a[i] + k * (b[i] - a[i]))
             } else {
@@ -387,7 +388,6 @@ mod tests {
                 assert_eq!(is_degenerate(&t), truth, "{t:?}");
             }
             degenerate += usize::from(truth);
-            cases += 1;
         }
         // Both answers are well represented.
         assert!(
