@@ -35,6 +35,8 @@ struct Lanes {
     far: &'static [usize; 3],
     tmin8: __m256,
     tri: TriLanes<__m128>,
+    /// `tri` in eight lanes, for two blocks at once ([`block_pair_test`]).
+    tri8: TriLanes<__m256>,
 }
 
 /// Rays' constants for the watertight test: one ray in every lane (`__m128`, a ray against
@@ -415,6 +417,16 @@ unsafe fn lanes(ray: &TriangleRay, constants: &RayConstants, tri: TriLanes<__m12
             near,
             far,
             tmin8: _mm256_set1_ps(ray.tmin),
+            tri8: TriLanes {
+                kx: tri.kx,
+                ky: tri.ky,
+                kz: tri.kz,
+                origin: tri.origin.map(|x| _mm256_set_m128(x, x)),
+                sx: _mm256_set_m128(tri.sx, tri.sx),
+                sy: _mm256_set_m128(tri.sy, tri.sy),
+                sz: _mm256_set_m128(tri.sz, tri.sz),
+                tmin: _mm256_set_m128(tri.tmin, tri.tmin),
+            },
             tri,
         }
     }
@@ -554,6 +566,34 @@ pub(crate) unsafe fn block_test(
     }
 }
 
+/// The watertight test of two neighbouring blocks' eight triangles against one ray (`r`
+/// in every lane): `blocks[b]`'s in lanes 0–3, `blocks[b + 1]`'s in lanes 4–7, so that
+/// lane `l` is slot `4b + l`; otherwise as [`block_test`]. A leaf of several blocks takes
+/// half the tests (on the scans, single rays gained 2–5%; DEVELOPERS.md, "Single rays test
+/// two blocks at once").
+///
+/// # Safety
+/// `b + 1 < blocks.len()`; only from a function with AVX2 enabled.
+#[inline(always)]
+pub(crate) unsafe fn block_pair_test(
+    blocks: &[TriangleBlock],
+    b: usize,
+    r: &TriLanes<__m256>,
+    tmax: __m256,
+) -> (u32, Hits<__m256>) {
+    // SAFETY: as required of the caller; blocks are 16-byte aligned and each lane array is
+    // 16 bytes at a multiple of 16.
+    unsafe {
+        let (low, high) = (blocks.get_unchecked(b), blocks.get_unchecked(b + 1));
+        let vertex = |v: usize, axis: usize| {
+            _mm256_loadu2_m128(high.v[v][axis].as_ptr(), low.v[v][axis].as_ptr())
+        };
+        watertight_test! { r, vertex, tmax, exact_edges8,
+        _mm256_setzero_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps, _mm256_div_ps,
+        _mm256_and_ps, _mm256_or_ps, _mm256_min_ps, _mm256_max_ps, _mm256_cmp_ps, _mm256_movemask_ps }
+    }
+}
+
 /// The watertight test of triangle `lane` of `block` against a row of eight rays (which
 /// share the axes `k`): a bit per ray with `tmin < t < tmax`, and the rays' values, as
 /// [`block_test`] gives them.
@@ -586,6 +626,33 @@ pub(crate) struct Hits<V> {
     pub(crate) det: V,
 }
 
+/// Folds the hits in lanes `mask` of a test starting at block `block` (distances `t`, lane
+/// `l` being slot `4 · block + l`) into `nearest` and `found`, under the tie rule of
+/// [`Nearest`]; whether any lane improved on it.
+#[inline(always)]
+fn keep_nearest<const N: usize>(
+    t: &[f32; N],
+    mask: u32,
+    block: u32,
+    nearest: &mut Nearest,
+    found: &mut Option<TriangleHit>,
+    hit: impl Fn(usize) -> TriangleHit,
+) -> bool {
+    let mut improved = false;
+    let mut m = mask;
+    while m != 0 {
+        let lane = m.trailing_zeros() as usize;
+        m &= m - 1;
+        let slot = block * BLOCK as u32 + lane as u32;
+        if nearest.improves(t[lane], slot) {
+            *nearest = Nearest { t: t[lane], slot };
+            *found = Some(hit(lane));
+            improved = true;
+        }
+    }
+    improved
+}
+
 impl Hits<__m128> {
     /// Folds the hits of block `block` (lanes set in `mask`) into `nearest` and `found`
     /// under the tie rule of [`Nearest`]; whether any lane improved on it.
@@ -597,20 +664,9 @@ impl Hits<__m128> {
         nearest: &mut Nearest,
         found: &mut Option<TriangleHit>,
     ) -> bool {
-        let t = lanes4(self.t);
-        let mut improved = false;
-        let mut m = mask;
-        while m != 0 {
-            let lane = m.trailing_zeros() as usize;
-            m &= m - 1;
-            let slot = block * BLOCK as u32 + lane as u32;
-            if nearest.improves(t[lane], slot) {
-                *nearest = Nearest { t: t[lane], slot };
-                *found = Some(self.hit(lane));
-                improved = true;
-            }
-        }
-        improved
+        keep_nearest(&lanes4(self.t), mask, block, nearest, found, |lane| {
+            self.hit(lane)
+        })
     }
 
     /// Lane `lane` as a [`TriangleHit`].
@@ -621,6 +677,27 @@ impl Hits<__m128> {
 }
 
 impl Hits<__m256> {
+    /// [`Hits::keep_nearest`] for the eight lanes of [`block_pair_test`], from block
+    /// `block`.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    pub(crate) unsafe fn keep_nearest(
+        &self,
+        mask: u32,
+        block: u32,
+        nearest: &mut Nearest,
+        found: &mut Option<TriangleHit>,
+    ) -> bool {
+        // SAFETY: AVX2 is enabled in the caller.
+        let t = unsafe { lanes8(self.t) };
+        // SAFETY: as above.
+        keep_nearest(&t, mask, block, nearest, found, |lane| unsafe {
+            self.hit(lane)
+        })
+    }
+
     /// Lane `lane` as a [`TriangleHit`].
     ///
     /// # Safety
@@ -843,10 +920,21 @@ pub unsafe fn closest(
         } else {
             (0, 0)
         };
-        for b in first..first + count {
+        // The leaf's blocks two at a time, then the last alone if their number is odd.
+        let end = first + count;
+        let mut b = first;
+        while b + 1 < end {
+            let limit = _mm256_set_m128(t_tri, t_tri);
+            let (mask, lanes) = unsafe { block_pair_test(blocks, b as usize, &r.tri8, limit) };
+            if mask != 0 && unsafe { lanes.keep_nearest(mask, b, &mut nearest, &mut found) } {
+                t_box = _mm256_set1_ps(nearest.horizon());
+                t_tri = _mm_set1_ps(nearest.t.next_up());
+            }
+            b += 2;
+        }
+        if b < end {
             let (mask, lanes) = unsafe { block_test(&blocks[b as usize], &r.tri, t_tri) };
-            if mask != 0 {
-                lanes.keep_nearest(mask, b, &mut nearest, &mut found);
+            if mask != 0 && lanes.keep_nearest(mask, b, &mut nearest, &mut found) {
                 t_box = _mm256_set1_ps(nearest.horizon());
                 t_tri = _mm_set1_ps(nearest.t.next_up());
             }
@@ -1016,11 +1104,23 @@ unsafe fn any_below(
     loop {
         if current & LEAF != 0 {
             let (first, count) = leaf_range(current);
-            for b in first..first + count {
-                // SAFETY: AVX2 is enabled in the caller.
-                if let Some(slot) = unsafe { block_hit(blocks, b, &r.tri, tmax) } {
-                    return Some(slot);
+            // As in `closest`: two blocks at a time, the last alone if their number is odd.
+            let end = first + count;
+            let mut b = first;
+            while b + 1 < end {
+                // SAFETY: `b + 1` is a block of the leaf; AVX2 is enabled in the caller.
+                let (mask, _) =
+                    unsafe { block_pair_test(blocks, b as usize, &r.tri8, _mm256_set1_ps(tmax)) };
+                if mask != 0 {
+                    return Some(b * BLOCK as u32 + mask.trailing_zeros());
                 }
+                b += 2;
+            }
+            // SAFETY: AVX2 is enabled in the caller.
+            if b < end
+                && let Some(slot) = unsafe { block_hit(blocks, b, &r.tri, tmax) }
+            {
+                return Some(slot);
             }
         } else {
             let node = &nodes[current as usize];
