@@ -21,8 +21,8 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, TriLanes, block_test, distance, lanes4, lanes8, pack, prefetch_child, push_sorted,
-    row_constants, row_test, slab_test,
+    STACK, TriLanes, block_pair_test, block_test, distance, lanes4, lanes8, pack, prefetch_child,
+    push_sorted, row_constants, row_test, slab_test,
 };
 use crate::simd512::{self, lanes16};
 use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit};
@@ -531,25 +531,68 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                         while hits != 0 {
                             let k = r * 8 + hits.trailing_zeros() as usize;
                             hits &= hits - 1;
-                            // Ray `k`'s constants in every lane of a block test, from its rows.
+                            // Ray `k`'s constants in every lane of a block test, from its rows,
+                            // four lanes wide for one block and eight for two.
                             let l = k % 8;
                             let [kx, ky, kz] = axes[k];
+                            macro_rules! ray_lanes {
+                                ($set1:ident) => {
+                                    TriLanes {
+                                        kx,
+                                        ky,
+                                        kz,
+                                        origin: [0, 1, 2].map(|a| $set1(origin[a].0[r][l])),
+                                        sx: $set1(shear_rows[0].0[r][l]),
+                                        sy: $set1(shear_rows[1].0[r][l]),
+                                        sz: $set1(shear_rows[2].0[r][l]),
+                                        tmin: $set1(tmin.0[r][l]),
+                                    }
+                                };
+                            }
                             // SAFETY (here and below): AVX2 is enabled where `trace` inlines.
-                            let set1 = |x: f32| unsafe { _mm_set1_ps(x) };
-                            let tri = TriLanes {
-                                kx,
-                                ky,
-                                kz,
-                                origin: [0, 1, 2].map(|a| set1(origin[a].0[r][l])),
-                                sx: set1(shear_rows[0].0[r][l]),
-                                sy: set1(shear_rows[1].0[r][l]),
-                                sz: set1(shear_rows[2].0[r][l]),
-                                tmin: set1(tmin.0[r][l]),
-                            };
-                            for b in first..first + count {
-                                let limit = set1(t_triangle::<ANY>(nearest[k]));
-                                let (mask, lanes) =
-                                    unsafe { block_test(&blocks[b as usize], &tri, limit) };
+                            let (set4, set8) = (
+                                |x: f32| unsafe { _mm_set1_ps(x) },
+                                |x: f32| unsafe { _mm256_set1_ps(x) },
+                            );
+                            let (tri, tri8) = (ray_lanes!(set4), ray_lanes!(set8));
+                            // The leaf's blocks two at a time (as `simd::closest` tests
+                            // them), then the last alone if their number is odd.
+                            let end = first + count;
+                            let mut b = first;
+                            while b < end {
+                                let limit = t_triangle::<ANY>(nearest[k]);
+                                let (mask, kept) = if b + 1 < end {
+                                    let (mask, lanes) = unsafe {
+                                        block_pair_test(blocks, b as usize, &tri8, set8(limit))
+                                    };
+                                    let keep = mask != 0 && !ANY;
+                                    (
+                                        mask,
+                                        keep && unsafe {
+                                            lanes.keep_nearest(
+                                                mask,
+                                                b,
+                                                &mut nearest[k],
+                                                &mut found[k],
+                                            )
+                                        },
+                                    )
+                                } else {
+                                    let (mask, lanes) = unsafe {
+                                        block_test(&blocks[b as usize], &tri, set4(limit))
+                                    };
+                                    let keep = mask != 0 && !ANY;
+                                    (
+                                        mask,
+                                        keep && lanes.keep_nearest(
+                                            mask,
+                                            b,
+                                            &mut nearest[k],
+                                            &mut found[k],
+                                        ),
+                                    )
+                                };
+                                b += 2;
                                 if mask == 0 {
                                     continue;
                                 }
@@ -562,7 +605,7 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                                     improved = true;
                                     break;
                                 }
-                                if lanes.keep_nearest(mask, b, &mut nearest[k], &mut found[k]) {
+                                if kept {
                                     t_box.0[r][l] = nearest[k].horizon();
                                     t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
                                     improved = true;
