@@ -569,8 +569,7 @@ pub(crate) unsafe fn block_test(
 /// The watertight test of two neighbouring blocks' eight triangles against one ray (`r`
 /// in every lane): `blocks[b]`'s in lanes 0–3, `blocks[b + 1]`'s in lanes 4–7, so that
 /// lane `l` is slot `4b + l`; otherwise as [`block_test`]. A leaf of several blocks takes
-/// half the tests (on the scans, single rays gained 2–5%; DEVELOPERS.md, "Single rays test
-/// two blocks at once").
+/// half the tests (DEVELOPERS.md, "Single rays test two blocks at once").
 ///
 /// # Safety
 /// `b + 1 < blocks.len()`; only from a function with AVX2 enabled.
@@ -925,6 +924,7 @@ pub unsafe fn closest(
         let mut b = first;
         while b + 1 < end {
             let limit = _mm256_set_m128(t_tri, t_tri);
+            // SAFETY: `b + 1` is a block of the leaf.
             let (mask, lanes) = unsafe { block_pair_test(blocks, b as usize, &r.tri8, limit) };
             if mask != 0 && unsafe { lanes.keep_nearest(mask, b, &mut nearest, &mut found) } {
                 t_box = _mm256_set1_ps(nearest.horizon());
