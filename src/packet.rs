@@ -562,7 +562,6 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                             while b < end {
                                 let limit = t_triangle::<ANY>(nearest[k]);
                                 let (mask, kept) = if b + 1 < end {
-                                    // SAFETY: `b + 1` is a block of the leaf.
                                     let (mask, lanes) = unsafe {
                                         block_pair_test(blocks, b as usize, &tri8, set8(limit))
                                     };

@@ -572,7 +572,7 @@ pub(crate) unsafe fn block_test(
 /// half the tests (DEVELOPERS.md, "Single rays test two blocks at once").
 ///
 /// # Safety
-/// `b + 1 < blocks.len()`; only from a function with AVX2 enabled.
+/// Only from a function with AVX2 enabled.
 #[inline(always)]
 pub(crate) unsafe fn block_pair_test(
     blocks: &[TriangleBlock],
@@ -580,10 +580,10 @@ pub(crate) unsafe fn block_pair_test(
     r: &TriLanes<__m256>,
     tmax: __m256,
 ) -> (u32, Hits<__m256>) {
-    // SAFETY: as required of the caller; blocks are 16-byte aligned and each lane array is
-    // 16 bytes at a multiple of 16.
+    let (low, high) = (&blocks[b], &blocks[b + 1]);
+    // SAFETY: AVX2 is enabled in the caller; the loads read 16 bytes each from lane arrays
+    // of 16 bytes.
     unsafe {
-        let (low, high) = (blocks.get_unchecked(b), blocks.get_unchecked(b + 1));
         let vertex = |v: usize, axis: usize| {
             _mm256_loadu2_m128(high.v[v][axis].as_ptr(), low.v[v][axis].as_ptr())
         };
@@ -924,7 +924,6 @@ pub unsafe fn closest(
         let mut b = first;
         while b + 1 < end {
             let limit = _mm256_set_m128(t_tri, t_tri);
-            // SAFETY: `b + 1` is a block of the leaf.
             let (mask, lanes) = unsafe { block_pair_test(blocks, b as usize, &r.tri8, limit) };
             if mask != 0 && unsafe { lanes.keep_nearest(mask, b, &mut nearest, &mut found) } {
                 t_box = _mm256_set1_ps(nearest.horizon());
@@ -1108,7 +1107,7 @@ unsafe fn any_below(
             let end = first + count;
             let mut b = first;
             while b + 1 < end {
-                // SAFETY: `b + 1` is a block of the leaf; AVX2 is enabled in the caller.
+                // SAFETY: AVX2 is enabled in the caller.
                 let (mask, _) =
                     unsafe { block_pair_test(blocks, b as usize, &r.tri8, _mm256_set1_ps(tmax)) };
                 if mask != 0 {
