@@ -8,11 +8,12 @@
 //! every ray's own computed value. A node is therefore skipped only if every ray's own
 //! robust test would skip it. Leaves are tested with exactly the single-ray box and
 //! triangle arithmetic: the box against a row of eight rays per instruction, then the
-//! triangles either ray by ray (four per instruction, as a single ray tests them) or, where
-//! most of a row entered the box, each triangle against the row's eight rays at once. With
-//! AVX-512 ([`LeafLanes::Sixteen`]) the box and the triangles take two rows at a time. A
-//! packet needs all its rays to share the signs of their direction (one near plane per
-//! axis); callers trace other rays one by one.
+//! triangles either ray by ray (a leaf's blocks two at a time, eight triangles per
+//! instruction, as a single ray tests them) or, where most of a row entered the box, each
+//! triangle against the row's eight rays at once. With AVX-512 ([`LeafLanes::Sixteen`])
+//! the box and the triangles take two rows at a time. A packet needs all its rays to share
+//! the signs of their direction (one near plane per axis); callers trace other rays one by
+//! one.
 
 use std::arch::x86_64::*;
 use std::cell::Cell;
@@ -517,8 +518,8 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
             }
             // The triangles against the rays of row `$r` that entered the box (`$hits`):
             // each triangle against the row at once where enough of it entered, otherwise
-            // each ray against the blocks (four triangles per instruction, as a single ray
-            // tests them).
+            // each ray against the blocks (two at a time, eight triangles per instruction, as
+            // a single ray tests them).
             macro_rules! row_triangles {
                 ($r:expr, $hits:expr) => {{
                     let r: usize = $r;

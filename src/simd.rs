@@ -478,11 +478,11 @@ unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) 
 }
 
 /// The watertight test's arithmetic ([`crate::triangle::intersect`]), lane by lane, for
-/// four triangles against one ray (`_mm_`) or one triangle against eight rays (`_mm256_`):
-/// `(mask, Hits)` with a bit per lane where `tmin < t < tmax`. The same IEEE operations in
-/// the same order in every lane, so every variant is bit-identical to the scalar test. A
-/// macro, so that it inlines into the AVX2 functions; `$vertex(v, axis)` gives the lanes
-/// of coordinate `axis` of vertex `v`.
+/// four triangles against one ray (`_mm_`), eight (two blocks) against one ray or one
+/// triangle against eight rays (`_mm256_`): `(mask, Hits)` with a bit per lane where
+/// `tmin < t < tmax`. The same IEEE operations in the same order in every lane, so every
+/// variant is bit-identical to the scalar test. A macro, so that it inlines into the AVX2
+/// functions; `$vertex(v, axis)` gives the lanes of coordinate `axis` of vertex `v`.
 macro_rules! watertight_test {
     ($r:expr, $vertex:expr, $tmax:expr, $exact_edges:expr,
      $zero:ident, $sub:ident, $mul:ident, $add:ident, $div:ident, $and:ident, $or:ident,
