@@ -1356,6 +1356,102 @@ mod tests {
         }
     }
 
+    #[test]
+    fn two_blocks_at_once_give_each_lane_the_scalar_test_s_hit() {
+        use crate::triangle::{ShearedRay, intersect};
+        if !available() {
+            return;
+        }
+        // Eight triangles of a grid in the plane z = 2, sharing edges and vertices, and
+        // rays along z at grid points (every edge function exactly 0 on the edges, the
+        // exact-edge path) and between them; then random triangles and rays.
+        let grid: [[[f32; 3]; 3]; 8] = std::array::from_fn(|i| {
+            // Two triangles to each cell of a 2 × 2 grid over [0, 2]².
+            let (x, y) = ((i / 2 % 2) as f32, (i / 4) as f32);
+            let corner = |dx: f32, dy: f32| [x + dx, y + dy, 2.0];
+            if i % 2 == 0 {
+                [corner(0.0, 0.0), corner(1.0, 0.0), corner(1.0, 1.0)]
+            } else {
+                [corner(0.0, 0.0), corner(1.0, 1.0), corner(0.0, 1.0)]
+            }
+        });
+        let mut cases: Vec<([[[f32; 3]; 3]; 8], TriangleRay)> = Vec::new();
+        for half_x in 0..=6 {
+            for half_y in 0..=6 {
+                let (x, y) = (half_x as f32 * 0.5 - 0.5, half_y as f32 * 0.5 - 0.5);
+                for dz in [1.0, -1.0] {
+                    let ray = TriangleRay {
+                        origin: [x, y, 2.0 - 3.0 * dz],
+                        direction: [0.0, 0.0, dz],
+                        tmin: 0.0,
+                        tmax: f32::INFINITY,
+                    };
+                    cases.push((grid, ray));
+                }
+            }
+        }
+        let grid_rays = cases.len();
+        let mut random = XorShift::new(23);
+        let mut point = || [0; 3].map(|_| random.unit_f32() * 2.0 - 1.0);
+        for _ in 0..2_000 {
+            let triangles = std::array::from_fn(|_| [point(), point(), point()]);
+            let ray = TriangleRay {
+                origin: point().map(|c| c * 4.0),
+                direction: point(),
+                tmin: 0.0,
+                tmax: 10.0,
+            };
+            cases.push((triangles, ray));
+        }
+        let mut random_hits = 0;
+        for (i, (triangles, ray)) in cases.iter().enumerate() {
+            let blocks: [TriangleBlock; 2] = std::array::from_fn(|b| {
+                let mut block = TriangleBlock {
+                    v: [[[0.0; BLOCK]; 3]; 3],
+                    ids: [0; BLOCK],
+                };
+                for lane in 0..BLOCK {
+                    for (k, vertex) in triangles[b * BLOCK + lane].iter().enumerate() {
+                        for (axis, &coordinate) in vertex.iter().enumerate() {
+                            block.v[k][axis][lane] = coordinate;
+                        }
+                    }
+                }
+                block
+            });
+            // SAFETY: AVX2 is available (checked above).
+            let (mask, lanes) = unsafe { pair_avx2(&blocks, ray) };
+            let sheared = ShearedRay::new(ray.origin.into(), ray.direction.into());
+            for (lane, [v0, v1, v2]) in triangles.iter().enumerate() {
+                let expected = intersect(&sheared, *v0, *v1, *v2, ray.tmin, ray.tmax);
+                let found = (mask >> lane & 1 == 1).then(|| lanes[lane]);
+                assert_eq!(found, expected, "lane {lane} of {triangles:?}, {ray:?}");
+            }
+            if i < grid_rays {
+                // Watertight: a grid ray within [0, 2]² hits some triangle (the lanes
+                // were compared above, so this checks that the cases reach hits).
+                let [x, y, _] = ray.origin;
+                let inside = (0.0..=2.0).contains(&x) && (0.0..=2.0).contains(&y);
+                assert_eq!(mask != 0, inside, "{ray:?}");
+            } else {
+                random_hits += usize::from(mask != 0);
+            }
+        }
+        assert!(random_hits > 20, "{random_hits} random rays hit");
+    }
+
+    /// [`block_pair_test`] of `blocks` against `ray`: the hit mask and each lane's hit.
+    #[target_feature(enable = "avx2")]
+    unsafe fn pair_avx2(blocks: &[TriangleBlock; 2], ray: &TriangleRay) -> (u32, [TriangleHit; 8]) {
+        // SAFETY: AVX2 is enabled in this function.
+        unsafe {
+            let constants = ray_constants(ray.direction);
+            let r = lanes(ray, &constants, triangle_lanes(ray, &constants));
+            let (mask, hits) = block_pair_test(blocks, 0, &r.tri8, _mm256_set1_ps(ray.tmax));
+            (mask, std::array::from_fn(|lane| hits.hit(lane)))
+        }
+    }
+
     #[target_feature(enable = "avx2")]
     unsafe fn row_avx2(rays: &[TriangleRay; 8]) -> RowConstants {
         // SAFETY: AVX2 is enabled in this function.
