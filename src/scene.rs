@@ -1142,19 +1142,28 @@ fn build_triangles(
     triangles: &[[[f32; 3]; 3]],
     preset: BuildPreset,
 ) -> (Vec<TriangleBlock>, Bvh<f32>) {
-    // Triangles without area are never hit, so they are left out of the tree.
-    let kept: Vec<u32> = (0..triangles.len() as u32)
+    // Triangles without area are never hit, so they are left out of the tree. Most meshes
+    // have none: then the tree is built over the input's own indices, without a list of the
+    // kept ones to write and read through.
+    let dropped: Vec<u32> = (0..triangles.len() as u32)
         .into_par_iter()
         .filter(|&i| {
             prefetch_triangle(triangles, i as usize + READ_AHEAD);
-            !triangle::is_degenerate(&triangles[i as usize])
+            triangle::is_degenerate(&triangles[i as usize])
         })
         .collect();
+    let kept: Option<Vec<u32>> = (!dropped.is_empty()).then(|| {
+        let mut dropped = dropped.iter().peekable();
+        (0..triangles.len() as u32)
+            .filter(|&i| dropped.next_if_eq(&&i).is_none())
+            .collect()
+    });
+    let id = |k: usize| kept.as_ref().map_or(k as u32, |kept| kept[k]);
     let box_of = |k: usize| {
         // The leaves are made for runs of `k`, and kept triangles are in input order: the
         // triangle `READ_AHEAD` past this one is soon in hand.
-        prefetch_triangle(triangles, kept[k] as usize + READ_AHEAD);
-        let [a, b, c] = triangles[kept[k] as usize].map(Vec3A::from);
+        prefetch_triangle(triangles, id(k) as usize + READ_AHEAD);
+        let [a, b, c] = triangles[id(k) as usize].map(Vec3A::from);
         Aabb::new(a.min(b).min(c), a.max(b).max(c))
     };
     // Triangles are laid out densely in leaf order, four to a block; a leaf covers the
@@ -1167,13 +1176,16 @@ fn build_triangles(
         (first_block, last_block - first_block + 1)
     };
     let (bvh, order) = Bvh::build_from(
-        kept.len(),
+        triangles.len() - dropped.len(),
         box_of,
         params,
         LeafCost::TRIANGLE_BLOCKS,
         leaf_blocks,
     );
-    let order: Vec<u32> = order.into_iter().map(|p| kept[p as usize]).collect();
+    let order: Vec<u32> = match &kept {
+        Some(kept) => order.into_iter().map(|p| kept[p as usize]).collect(),
+        None => order,
+    };
     let blocks = order
         .par_chunks(BLOCK)
         .enumerate()
