@@ -4,9 +4,12 @@
 //! with its transform composed from the root, and every triangle primitive (triangles,
 //! strips and fans); points and lines are skipped with a warning. Buffers are read here
 //! (GLB chunk, `data:` URIs, files beside the glTF) and accessors decoded here, with every
-//! offset checked; images are never read or decoded.
+//! offset checked; images are never read or decoded. A GLB's chunk is used where it lies
+//! in the file's bytes and a large buffer file is mapped ([`FileBytes`]), not copied.
 
+use std::borrow::Cow;
 use std::collections::HashMap;
+use std::ops::Deref;
 use std::path::Path;
 
 use base64::Engine;
@@ -15,6 +18,7 @@ use gltf::accessor::{DataType, Dimensions};
 use gltf::mesh::Mode;
 
 use crate::error::{MeshError, Place};
+use crate::file_bytes::FileBytes;
 use crate::mesh::{Geometry, Instance, MeshFile};
 
 pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
@@ -26,6 +30,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
     let (document, blob) = open(bytes).map_err(|e| fail(None, shorten(&e.to_string())))?;
     let buffers = load_buffers(&document, blob, path)
         .map_err(|(place, message)| fail(Some(place), message))?;
+    let buffers: Vec<&[u8]> = buffers.iter().map(|b| &**b).collect();
     let document = &document;
 
     let roots: Vec<gltf::Node> = match document
@@ -117,12 +122,19 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
 /// (materials, textures, lights) are dropped before validation, and so is
 /// `KHR_mesh_quantization`, whose integer positions [`read_accessor`] decodes; any other
 /// required extension (Draco, meshopt, GPU instancing...) is refused by the validator.
-fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<Vec<u8>>), gltf::Error> {
-    let gltf = gltf::Gltf::from_slice_without_validation(bytes)?;
-    let mut root = gltf.document.into_json();
+///
+/// A GLB's binary chunk is borrowed from `bytes`, not copied.
+fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<BufferBytes<'_>>), gltf::Error> {
+    let (mut root, blob): (gltf::json::Root, _) = if bytes.starts_with(b"glTF") {
+        let glb = gltf::binary::Glb::from_slice(bytes)?;
+        let blob = glb.bin.map(BufferBytes::Chunk);
+        (gltf::json::deserialize::from_slice(&glb.json)?, blob)
+    } else {
+        (gltf::json::deserialize::from_slice(bytes)?, None)
+    };
     root.extensions_required
         .retain(|name| !geometry_neutral(name));
-    Ok((gltf::Document::from_json(root)?, gltf.blob))
+    Ok((gltf::Document::from_json(root)?, blob))
 }
 
 fn geometry_neutral(extension: &str) -> bool {
@@ -186,7 +198,7 @@ fn node_matrix(node: &gltf::Node) -> DMat4 {
 
 type Fault = (Option<String>, String);
 
-fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Geometry, Fault> {
+fn read_primitive(primitive: &gltf::Primitive, buffers: &[&[u8]]) -> Result<Geometry, Fault> {
     let positions = primitive
         .get(&gltf::Semantic::Positions)
         .ok_or((None, "has no POSITION attribute".to_string()))?;
@@ -194,9 +206,7 @@ fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Ge
     if positions.dimensions() != Dimensions::Vec3 {
         return Err((at(&positions), "POSITION must be a VEC3".to_string()));
     }
-    let plain = plain_elements(&positions, buffers, DataType::F32, |b| {
-        f32::from_le_bytes([b[0], b[1], b[2], b[3]])
-    });
+    let plain = plain_elements(&positions, buffers, DataType::F32, f32::from_le_bytes);
     let positions_f32: Vec<[f32; 3]> = match plain {
         Some(read) => read.map_err(|m| (at(&positions), m))?,
         None => read_accessor(&positions, buffers)
@@ -219,15 +229,13 @@ fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Ge
                     "indices must be unsigned integer scalars".to_string(),
                 ));
             }
-            let plain = plain_elements(&indices, buffers, DataType::U32, |b| {
-                u32::from_le_bytes([b[0], b[1], b[2], b[3]])
-            })
-            .or_else(|| {
-                plain_elements(&indices, buffers, DataType::U16, |b| {
-                    u32::from(u16::from_le_bytes([b[0], b[1]]))
+            let plain = plain_elements(&indices, buffers, DataType::U32, u32::from_le_bytes)
+                .or_else(|| {
+                    plain_elements(&indices, buffers, DataType::U16, |b| {
+                        u32::from(u16::from_le_bytes(b))
+                    })
                 })
-            })
-            .or_else(|| plain_elements(&indices, buffers, DataType::U8, |b| u32::from(b[0])));
+                .or_else(|| plain_elements(&indices, buffers, DataType::U8, |[b]| u32::from(b)));
             let corners: Vec<u32> = match plain {
                 Some(read) => {
                     let read = read.map_err(|m| (at(&indices), m))?;
@@ -274,17 +282,19 @@ fn read_primitive(primitive: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<Ge
     })
 }
 
-/// The elements of an accessor stored as plain values of `data_type` with no sparse
-/// substitutions (nearly every file's positions and indices), read straight from the
-/// buffer, `N` components each, `read` decoding one component from its bytes. `None` when
-/// the accessor needs [`read_accessor`]'s general path, which gives the same values.
-fn plain_elements<T, const N: usize>(
+/// The elements of an accessor stored as plain values of `data_type` (`S` bytes each) with
+/// no sparse substitutions (nearly every file's positions and indices), read straight from
+/// the buffer, `N` components each, `read` decoding one component from its little-endian
+/// bytes. `None` when the accessor needs [`read_accessor`]'s general path, which gives the
+/// same values.
+fn plain_elements<T, const N: usize, const S: usize>(
     accessor: &gltf::Accessor,
-    buffers: &[Vec<u8>],
+    buffers: &[&[u8]],
     data_type: DataType,
-    read: impl Fn(&[u8]) -> T,
+    read: impl Fn([u8; S]) -> T,
 ) -> Option<Result<Vec<[T; N]>, String>> {
     if accessor.data_type() != data_type
+        || data_type.size() != S
         || accessor.normalized()
         || accessor.sparse().is_some()
         || accessor.dimensions().multiplicity() != N
@@ -292,20 +302,25 @@ fn plain_elements<T, const N: usize>(
         return None;
     }
     let view = accessor.view()?;
-    let (size, count) = (data_type.size(), accessor.count());
-    let element = N * size;
+    let count = accessor.count();
+    let element = N * S;
     let stride = view.stride().unwrap_or(element);
     let bytes = match view_bytes(&view, accessor.offset(), count, element, stride, buffers) {
         Ok(bytes) => bytes,
         Err(message) => return Some(Err(message)),
     };
-    let element_at = |i: usize| std::array::from_fn(|c| read(&bytes[i * stride + c * size..]));
-    Some(Ok((0..count).map(element_at).collect()))
+    // Fixed-size pieces let the compiler drop the bounds checks: this runs per vertex.
+    let element_at = |chunk: &[u8]| {
+        let (element, _) = chunk.split_at(element);
+        std::array::from_fn(|c| read(element[c * S..(c + 1) * S].try_into().expect("S bytes")))
+    };
+    // `view_bytes` spans `count` elements, the last without its stride's padding.
+    Some(Ok(bytes.chunks(stride).map(element_at).collect()))
 }
 
 /// Every component of every element of an accessor, in order, as f64 (exact for all glTF
 /// component types). Sparse substitutions are applied; a missing buffer view means zeros.
-fn read_accessor(accessor: &gltf::Accessor, buffers: &[Vec<u8>]) -> Result<Vec<f64>, String> {
+fn read_accessor(accessor: &gltf::Accessor, buffers: &[&[u8]]) -> Result<Vec<f64>, String> {
     let components = accessor.dimensions().multiplicity();
     let data_type = accessor.data_type();
     let count = accessor.count();
@@ -380,14 +395,14 @@ fn view_bytes<'a>(
     count: usize,
     element: usize,
     stride: usize,
-    buffers: &'a [Vec<u8>],
+    buffers: &[&'a [u8]],
 ) -> Result<&'a [u8], String> {
     if stride < element {
         return Err(format!(
             "byteStride {stride} is smaller than an element ({element} bytes)"
         ));
     }
-    let buffer = &buffers[view.buffer().index()];
+    let buffer = buffers[view.buffer().index()];
     let span = if count == 0 {
         0
     } else {
@@ -434,11 +449,11 @@ fn component(bytes: &[u8], data_type: DataType, normalized: bool) -> f64 {
 }
 
 /// Every buffer's bytes: the GLB binary chunk, a `data:` URI, or a file beside the glTF.
-fn load_buffers(
+fn load_buffers<'a>(
     document: &gltf::Document,
-    blob: Option<Vec<u8>>,
+    blob: Option<BufferBytes<'a>>,
     path: &Path,
-) -> Result<Vec<Vec<u8>>, (String, String)> {
+) -> Result<Vec<BufferBytes<'a>>, (String, String)> {
     let folder = path.parent().unwrap_or(Path::new(""));
     let mut blob = blob;
     let mut buffers = Vec::new();
@@ -468,13 +483,32 @@ fn load_buffers(
     Ok(buffers)
 }
 
-fn read_uri(uri: &str, folder: &Path) -> Result<Vec<u8>, String> {
+/// A buffer's bytes: borrowed from the GLB file or decoded from a `data:` URI, or a file
+/// of its own, mapped like mesh files ([`FileBytes`]).
+enum BufferBytes<'a> {
+    Chunk(Cow<'a, [u8]>),
+    File(FileBytes),
+}
+
+impl Deref for BufferBytes<'_> {
+    type Target = [u8];
+
+    fn deref(&self) -> &[u8] {
+        match self {
+            BufferBytes::Chunk(bytes) => bytes,
+            BufferBytes::File(bytes) => bytes,
+        }
+    }
+}
+
+fn read_uri(uri: &str, folder: &Path) -> Result<BufferBytes<'static>, String> {
     if let Some(rest) = uri.strip_prefix("data:") {
         let (_, payload) = rest
             .split_once(";base64,")
             .ok_or("only base64 data URIs are supported")?;
         return base64::engine::general_purpose::STANDARD
             .decode(payload)
+            .map(|bytes| BufferBytes::Chunk(Cow::Owned(bytes)))
             .map_err(|e| format!("bad base64 data: {e}"));
     }
     if uri.contains("://") || uri.starts_with("file:") {
@@ -484,7 +518,9 @@ fn read_uri(uri: &str, folder: &Path) -> Result<Vec<u8>, String> {
     }
     let relative = percent_decode(uri).ok_or_else(|| format!("malformed URI `{uri}`"))?;
     let file = folder.join(relative);
-    std::fs::read(&file).map_err(|e| format!("cannot read {}: {e}", file.display()))
+    FileBytes::open(&file)
+        .map(BufferBytes::File)
+        .map_err(|e| format!("cannot read {}: {e}", file.display()))
 }
 
 /// Decodes `%XX` escapes of a relative URI; `None` for a bad escape or invalid UTF-8.
