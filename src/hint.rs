@@ -4,17 +4,20 @@
 //! Neighbouring rays (the pixels of a tile, shadow rays from neighbouring points toward
 //! one light) are mostly stopped by the same few triangles, most often by the block of
 //! four triangles that stopped the ray before them. A hinted query tests that block
-//! first, then the subtree around it ([`crate::scene::HINT_LEVELS`] above its leaf), and
-//! only then the whole tree; most hitting rays end after one block test or a short search
-//! instead of a descent from the root. A query that hits no triangle clears the hint, so a run of misses pays
-//! nothing for it. Spheres likewise: the sphere that stopped the previous ray is tested
-//! before the spheres' tree.
+//! first; if it missed, the block that stopped the ray [`AnyHitHint::ROWS`] queries
+//! before (the ray above, in the renderer's 8 × 8 groups of pixels, whose rays go row by
+//! row); then the subtree around the first ([`crate::scene::HINT_LEVELS`] above its
+//! leaf), and only then the whole tree. Most hitting rays end after a block test or two or
+//! a short search instead of a descent from the root. A query that hits no triangle
+//! leaves the next one without a guess, so a run of misses pays nothing for the hint.
+//! Spheres likewise: the sphere that stopped the previous ray is tested before the
+//! spheres' tree.
 //!
-//! The hint changes the work, never the answer: the block and the subtree are tested with
+//! The hint changes the work, never the answer: the blocks and the subtree are tested with
 //! the traversal's own box and watertight tests over the same interval `tmin < t < tmax`,
 //! so a hinted query returns `true` only for a real hit, and when they hold none the whole
 //! tree is searched as by an unhinted query. A stale hint, or one from another scene,
-//! costs a block test and a short search.
+//! costs two block tests and a short search.
 //!
 //! ```
 //! use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry};
@@ -31,8 +34,11 @@ use crate::triangle::BLOCK;
 /// or nothing (the default, and after a query whose search of that kind found none).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct AnyHitHint {
-    /// A slot as in [`crate::scene::Primitive::Triangle`], or [`AnyHitHint::NONE`].
-    slot: u32,
+    /// The slots (as in [`crate::scene::Primitive::Triangle`]) found by the last
+    /// [`AnyHitHint::ROWS`] queries that searched the triangles, or [`AnyHitHint::NONE`];
+    /// a ring whose newest entry is at `newest`.
+    slots: [u32; AnyHitHint::ROWS],
+    newest: u8,
     /// An index into the scene's spheres in tree order, or [`AnyHitHint::NONE`].
     sphere: u32,
 }
@@ -40,7 +46,8 @@ pub struct AnyHitHint {
 impl Default for AnyHitHint {
     fn default() -> AnyHitHint {
         AnyHitHint {
-            slot: AnyHitHint::NONE,
+            slots: [AnyHitHint::NONE; AnyHitHint::ROWS],
+            newest: 0,
             sphere: AnyHitHint::NONE,
         }
     }
@@ -49,24 +56,38 @@ impl Default for AnyHitHint {
 impl AnyHitHint {
     const NONE: u32 = u32::MAX;
 
+    /// How many queries back the second guess looks: a row of the renderer's square
+    /// groups of pixels ([`crate::render::PACKET_SIDE`]), whose rays go row by row, so
+    /// that the ray that many queries back is the one above.
+    pub const ROWS: usize = crate::render::PACKET_SIDE as usize;
+
     /// The slot (see [`crate::scene::Tracer::triangle_id`]) of the triangle that stopped
     /// the last query that searched the triangles, if one did.
     pub fn triangle_slot(&self) -> Option<u32> {
-        (self.slot != AnyHitHint::NONE).then_some(self.slot)
+        let slot = self.slots[usize::from(self.newest)];
+        (slot != AnyHitHint::NONE).then_some(slot)
     }
 
-    /// The block to test first, if any (it may be out of range for the scene at hand).
+    /// The blocks to test first, in order, if any (they may be out of range for the scene
+    /// at hand): the previous query's, then the one [`AnyHitHint::ROWS`] queries back
+    /// when it is another.
     #[inline(always)]
-    pub(crate) fn block(&self) -> Option<usize> {
-        self.triangle_slot()
-            .map(|slot| (slot / BLOCK as u32) as usize)
+    pub(crate) fn blocks(&self) -> [Option<usize>; 2] {
+        let block =
+            |slot: u32| (slot != AnyHitHint::NONE).then_some((slot / BLOCK as u32) as usize);
+        let previous = block(self.slots[usize::from(self.newest)]);
+        // The oldest entry of the ring: the next query's `ROWS`-th predecessor.
+        let above = block(self.slots[(usize::from(self.newest) + 1) % AnyHitHint::ROWS]);
+        [previous, above.filter(|&b| Some(b) != previous)]
     }
 
     /// Records the triangle (its slot) a search of the triangles found, or that it found
     /// none: then the next query starts without a guess.
     #[inline(always)]
     pub(crate) fn remember_triangle(&mut self, slot: Option<u32>) {
-        self.slot = slot.unwrap_or(AnyHitHint::NONE);
+        let newest = (usize::from(self.newest) + 1) % AnyHitHint::ROWS;
+        self.slots[newest] = slot.unwrap_or(AnyHitHint::NONE);
+        self.newest = newest as u8;
     }
 
     /// The sphere (in the scene's tree order) to test first, if any.
@@ -79,5 +100,33 @@ impl AnyHitHint {
     #[inline(always)]
     pub(crate) fn remember_sphere(&mut self, sphere: Option<u32>) {
         self.sphere = sphere.unwrap_or(AnyHitHint::NONE);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_second_guess_is_the_block_found_rows_queries_back() {
+        // Queries found triangles in blocks 10, 11, ..., one block per query, with a miss
+        // at query 3; before query `q`, the guesses are the block of query `q − 1` and
+        // that of query `q − ROWS`.
+        let found = |q: usize| (q != 3).then(|| (10 + q as u32) * BLOCK as u32 + 1);
+        let block = |q: usize| found(q).map(|slot| (slot / BLOCK as u32) as usize);
+        let mut hint = AnyHitHint::default();
+        assert_eq!(hint.blocks(), [None, None]);
+        for q in 0..3 * AnyHitHint::ROWS {
+            hint.remember_triangle(found(q));
+            assert_eq!(hint.triangle_slot(), found(q), "query {q}");
+            let above = (q + 1).checked_sub(AnyHitHint::ROWS).and_then(block);
+            assert_eq!(hint.blocks(), [block(q), above], "before query {}", q + 1);
+        }
+        // The same block twice is tested once.
+        let mut hint = AnyHitHint::default();
+        for _ in 0..AnyHitHint::ROWS {
+            hint.remember_triangle(Some(4 * BLOCK as u32));
+        }
+        assert_eq!(hint.blocks(), [Some(4), None]);
     }
 }

@@ -835,12 +835,12 @@ impl Scene {
                 });
             found
         };
-        // As the AVX2 path: the hint's block, the subtree around it, the whole tree.
+        // As the AVX2 path: the hint's blocks, the subtree around the first, the whole tree.
         let mut found = None;
-        if let Some(b) = hint.block()
+        if let [Some(b), above] = hint.blocks()
             && b < blocks.len()
         {
-            found = stopped(b);
+            found = stopped(b).or_else(|| above.filter(|&a| a < blocks.len()).and_then(stopped));
             let root = self.triangles.hint_roots()[b];
             if found.is_none() && root != 0 {
                 found = search(root);
