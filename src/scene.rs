@@ -1058,11 +1058,12 @@ impl TriangleRay {
 }
 
 /// Levels above the leaf of a hinted any-hit query's block where its second search starts
-/// (see [`crate::hint`]): the subtree under the leaf's parent node, around the hint. On the benchmark's camera rays (`raybatch bench --models
-/// ../shared/models --only torus,ogre,bunny,nefertiti --threads 1`, `any 1`), one level
-/// is 1–3% faster than two on the fourth host of BENCHMARKS.md, now that leaves test two
-/// blocks at once; on the first host, before that, one level had given half the speed-up
-/// of two, and three no more than two.
+/// (see [`crate::hint`]): the subtree under the leaf's parent node, around the hint. On
+/// the benchmark's camera rays (`raybatch bench --models ../shared/models --only
+/// torus,ogre,bunny,nefertiti --threads 1`, `any 1`), one level is 1–3% faster than two
+/// on BENCHMARKS.md's Zen 4 host, now that leaves test two blocks at once; on its first
+/// host, before that, one level had given half the speed-up of two, and three no more
+/// than two.
 pub const HINT_LEVELS: usize = 1;
 
 /// The triangles of a scene, ready for rays: their tree and the blocks its leaves point
