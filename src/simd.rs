@@ -1073,7 +1073,7 @@ pub unsafe fn any(
 
 /// The slot of a triangle of the hint's second block ([`AnyHitHint::blocks`]) with
 /// `tmin < t < tmax`, if any: tried when the first missed. Out of line, as inlined it cost
-/// every query (the unhinted ones 11–15% on the scans).
+/// every query (the unhinted ones 10–14% on the torus and the scans).
 ///
 /// # Safety
 /// Only on a CPU with AVX2.
