@@ -27,7 +27,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         place: Place(place),
         message,
     };
-    let (document, blob) = open(bytes).map_err(|e| fail(None, shorten(&e.to_string())))?;
+    let (document, blob) = open(bytes).map_err(|e| fail(None, shorten(&e)))?;
     let buffers = load_buffers(&document, blob, path)
         .map_err(|(place, message)| fail(Some(place), message))?;
     let buffers: Vec<&[u8]> = buffers.iter().map(|b| &**b).collect();
@@ -124,17 +124,33 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
 /// required extension (Draco, meshopt, GPU instancing...) is refused by the validator.
 ///
 /// A GLB's binary chunk is borrowed from `bytes`, not copied.
-fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<BufferBytes<'_>>), gltf::Error> {
+fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<BufferBytes<'_>>), String> {
+    let text = |e: gltf::Error| e.to_string();
     let (mut root, blob): (gltf::json::Root, _) = if bytes.starts_with(b"glTF") {
-        let glb = gltf::binary::Glb::from_slice(bytes)?;
+        // `Glb::from_slice` subtracts the header's size from its length unchecked.
+        const HEADER: u32 = 12;
+        if let Some(length) = bytes
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            && length < HEADER
+        {
+            return Err(format!(
+                "the GLB header gives the file's length {length}, less than the header's {HEADER} bytes"
+            ));
+        }
+        let glb = gltf::binary::Glb::from_slice(bytes).map_err(text)?;
         let blob = glb.bin.map(BufferBytes::Chunk);
-        (gltf::json::deserialize::from_slice(&glb.json)?, blob)
+        let root = gltf::json::deserialize::from_slice(&glb.json)
+            .map_err(|e| text(gltf::Error::Deserialize(e)))?;
+        (root, blob)
     } else {
-        (gltf::json::deserialize::from_slice(bytes)?, None)
+        let root = gltf::json::deserialize::from_slice(bytes)
+            .map_err(|e| text(gltf::Error::Deserialize(e)))?;
+        (root, None)
     };
     root.extensions_required
         .retain(|name| !geometry_neutral(name));
-    Ok((gltf::Document::from_json(root)?, blob))
+    Ok((gltf::Document::from_json(root).map_err(text)?, blob))
 }
 
 fn geometry_neutral(extension: &str) -> bool {
