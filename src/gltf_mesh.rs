@@ -150,7 +150,32 @@ fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<BufferBytes<'_>>), Strin
     };
     root.extensions_required
         .retain(|name| !geometry_neutral(name));
+    check_position_accessors(&root)?;
     Ok((gltf::Document::from_json(root).map_err(text)?, blob))
+}
+
+/// gltf-json's validation looks up each primitive's `POSITION` accessor before it checks
+/// that the index exists (and panics when it does not), so it is checked here first.
+fn check_position_accessors(root: &gltf::json::Root) -> Result<(), String> {
+    use gltf::json::mesh::Semantic;
+    use gltf::json::validation::Checked;
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            let position = primitive
+                .attributes
+                .get(&Checked::Valid(Semantic::Positions));
+            if let Some(index) = position
+                && index.value() >= root.accessors.len()
+            {
+                return Err(format!(
+                    "meshes[{m}].primitives[{p}].attributes.POSITION: accessor {} does not exist (the file has {})",
+                    index.value(),
+                    root.accessors.len()
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 fn geometry_neutral(extension: &str) -> bool {

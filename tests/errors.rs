@@ -271,6 +271,13 @@ fn bad_mesh_files_are_refused_with_the_file_and_place() {
         ("face.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", vec!["face.obj: line 4", "does not exist"]),
         ("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", vec!["zero.obj: line 4"]),
         ("nan.obj", b"v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", vec!["nan.obj", "vertex 2 is not finite"]),
+        // A relative index far before the first texture coordinate: tobj multiplies it
+        // unchecked (a panic in debug builds unless its overflow checks are off).
+        (
+            "relative.obj",
+            b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/-2147483648 2/1 3/1\n",
+            vec!["relative.obj: line 5", "does not exist"],
+        ),
         ("binary.obj", b"v 0 0 0\n\xff\xfe\n", vec!["binary.obj: line 2", "UTF-8"]),
         ("text.gltf", b"this is not json", vec!["text.gltf"]),
         ("truncated.glb", b"glTF\x02\x00\x00\x00", vec!["truncated.glb"]),
@@ -290,6 +297,15 @@ fn bad_mesh_files_are_refused_with_the_file_and_place() {
                 "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
                 "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}]}"#,
             vec!["index.gltf", "accessors[0]", "reach past"],
+        ),
+        // gltf-json's validation indexed the accessors by POSITION unchecked (a panic).
+        (
+            "position.gltf",
+            br#"{"asset": {"version": "2.0"},
+                "accessors": [],
+                "meshes": [{"primitives": [{"attributes": {"POSITION": 2}}]}],
+                "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}]}"#,
+            vec!["position.gltf", "meshes[0].primitives[0]", "accessor 2 does not exist"],
         ),
         (
             "missing-bin.gltf",
