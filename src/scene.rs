@@ -487,7 +487,7 @@ impl Scene {
     /// The closest sphere hit with `ray.tmin < t < tmax`.
     #[inline(always)]
     fn closest_sphere(&self, ray: &Ray, mut tmax: f64) -> Option<Hit> {
-        if self.sphere_bvh.is_empty() {
+        if self.sphere_bvh.is_empty() || !finite(ray) {
             return None;
         }
         let mut best = None;
@@ -597,11 +597,17 @@ impl Scene {
     }
 
     /// Whether [`Scene::closest_hits`] can trace these rays (at most one packet's worth) as
-    /// a packet rather than one by one: AVX2, and the same direction signs for all. (Just
-    /// after wasteful packets it still goes one by one, see [`crate::packet::Visits`].)
+    /// a packet rather than one by one: AVX2, the same direction signs for all, finite
+    /// origins and directions and no NaN `tmin`. (Just after wasteful packets it still
+    /// goes one by one, see [`crate::packet::Visits`].)
     pub fn traces_as_packet(&self, rays: &[Ray]) -> bool {
         let signs = |r: &Ray| r.direction.as_vec3().to_array().map(f32::is_sign_negative);
-        self.simd && rays.len() <= PACKET && rays.iter().all(|r| signs(r) == signs(&rays[0]))
+        let usable = |r: &Ray| finite(r) && !r.tmin.is_nan();
+        self.simd
+            && rays.len() <= PACKET
+            && rays
+                .iter()
+                .all(|r| signs(r) == signs(&rays[0]) && usable(r))
     }
 
     /// [`Scene::any_hit`] for many rays: `out[i]` receives ray `i`'s answer, with coherent
@@ -729,7 +735,7 @@ impl Scene {
     /// Whether a sphere has `ray.tmin < t < ray.tmax`, the hint's sphere tested first.
     #[inline(always)]
     fn any_sphere(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        if self.sphere_bvh.is_empty() {
+        if self.sphere_bvh.is_empty() || !finite(ray) {
             return false;
         }
         let hits = |i: usize| self.spheres[i].intersect(ray, ray.tmax).is_some();
@@ -993,6 +999,15 @@ pub struct TriangleRay {
     pub direction: [f32; 3],
     pub tmin: f32,
     pub tmax: f32,
+}
+
+/// Whether the ray's origin and direction are finite; others meet no sphere. The sphere
+/// tree's box test reads a NaN slab (`0 · ∞`, a ray along a box face) as no constraint,
+/// so a ray with a NaN slab on every axis would enter every slot, empty ones too, and
+/// their reference back to the root.
+#[inline(always)]
+fn finite(ray: &Ray) -> bool {
+    ray.origin.is_finite() && ray.direction.is_finite()
 }
 
 /// Up to [`PACKET`] rays rounded for the triangle kernels, ray `k` with the interval

@@ -147,7 +147,7 @@ unsafe fn broadcast_pd(p: *const f64) -> __m256d {
 /// `rays[k].tmin < t < tmax[k]`: `found(k, t, position)` is called for each ray with a
 /// hit, `position` indexing `spheres` (the tree's leaf order). Returns what the traversal
 /// visited, or `None`, calling nothing, when the rays' directions differ in sign on some
-/// axis.
+/// axis, a ray's origin or direction is not finite, or its `tmin` is NaN.
 ///
 /// # Safety
 /// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
@@ -166,8 +166,7 @@ pub unsafe fn closest(
 /// Whether each of up to [`PACKET`] rays hits a sphere with `rays[k].tmin < t < tmax[k]`,
 /// traced together: `found(k, t, position)` is called for each ray that does, with some
 /// hit (not necessarily the nearest); rays leave the packet at their first hit. Returns
-/// what the traversal visited, or `None`, calling nothing, when the rays' directions
-/// differ in sign on some axis.
+/// what the traversal visited, or `None`, calling nothing, as for [`closest`].
 ///
 /// # Safety
 /// As for [`closest`].
@@ -220,6 +219,10 @@ unsafe fn trace<const ANY: bool>(
     let mut tmin_lo = _mm256_set1_pd(f64::INFINITY);
     // Per axis, the direction signs seen in every lane: all rays must share them.
     let (mut signs_any, mut signs_all) = ([0i32; 3], [0xf_i32; 3]);
+    // Lanes with a non-finite origin or direction, or a NaN `tmin`: the ranges would skip
+    // or widen past them, and the corner bounds then admit every slot, empty ones too,
+    // so such packets are left to the single-ray path.
+    let mut bad = _mm256_setzero_pd();
     let exit_scale = _mm256_set1_pd(<f64 as crate::bvh::Scalar>::EXIT_SCALE);
     for g in 0..GROUPS {
         let four = [0, 1, 2, 3].map(|l| &rays[(4 * g + l).min(n - 1)]);
@@ -236,6 +239,10 @@ unsafe fn trace<const ANY: bool>(
             lanes(|r| r.direction.z),
         ];
         let t = lanes(|r| r.tmin);
+        // `x − x` is NaN exactly where `x` is infinite or NaN.
+        for x in o.iter().chain(&d).map(|&x| _mm256_sub_pd(x, x)).chain([t]) {
+            bad = _mm256_or_pd(bad, _mm256_cmp_pd::<_CMP_UNORD_Q>(x, x));
+        }
         let mut length2 = _mm256_setzero_pd();
         for a in 0..3 {
             let i = _mm256_div_pd(_mm256_set1_pd(1.0), d[a]);
@@ -282,7 +289,7 @@ unsafe fn trace<const ANY: bool>(
         direction,
         length2,
     } = fixed;
-    if (0..3).any(|a| signs_any[a] != signs_all[a]) {
+    if (0..3).any(|a| signs_any[a] != signs_all[a]) || _mm256_movemask_pd(bad) != 0 {
         return None;
     }
     let octant = signs_all.map(|s| (s & 1) as usize);

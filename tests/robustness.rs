@@ -969,6 +969,90 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
 }
 
 #[test]
+fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answer() {
+    // A NaN drops out of a packet's ranges of origin and direction, and a ray non-finite
+    // on every axis has a NaN slab on each (`∞ − ∞`, `0 · ∞`): box bounds then admit
+    // every slot of a node, empty ones too, whose reference leads back to the root. Three
+    // spheres leave most of the root's slots empty; the mesh adds triangle packets.
+    let spheres = vec![
+        Sphere {
+            center: DVec3::new(-0.8, 0.0, 0.0),
+            radius: 0.5,
+        },
+        Sphere {
+            center: DVec3::new(0.8, 0.0, 0.0),
+            radius: 0.5,
+        },
+        Sphere {
+            center: DVec3::new(0.0, 0.9, 0.5),
+            radius: 0.4,
+        },
+    ];
+    let with_mesh = placed(
+        &procedural::icosphere(2),
+        DMat4::from_scale(DVec3::splat(0.6)),
+    );
+    let only_spheres = SceneGeometry {
+        spheres: spheres.clone(),
+        ..SceneGeometry::default()
+    };
+    let both = SceneGeometry {
+        spheres,
+        ..with_mesh.clone()
+    };
+    // Rays from one eye to an 8 × 8 grid across the scene: their directions share signs.
+    let eye = DVec3::new(3.0, 2.5, -4.0);
+    let good: Vec<Ray> = (0..64)
+        .map(|k| {
+            let grid = |i: usize| (i as f64 - 3.5) * 0.35;
+            ray(eye, DVec3::new(grid(k % 8), grid(k / 8), 0.0))
+        })
+        .collect();
+    for geometry in [&only_spheres, &with_mesh, &both] {
+        let mut scene = Scene::build(geometry);
+        scene.set_adaptive_packets(false);
+        assert!(!has_avx2() || scene.traces_as_packet(&good));
+        for (case, spoil) in [
+            (
+                "origin.y",
+                (|r: &mut Ray| r.origin.y = f64::NAN) as fn(&mut Ray),
+            ),
+            ("origin", |r: &mut Ray| r.origin = DVec3::NAN),
+            ("direction.x", |r: &mut Ray| r.direction.x = f64::NAN),
+            ("direction", |r: &mut Ray| r.direction = DVec3::NAN),
+            ("tmin", |r: &mut Ray| r.tmin = f64::NAN),
+            ("origin ∞", |r: &mut Ray| r.origin = DVec3::INFINITY),
+            ("direction ∞", |r: &mut Ray| {
+                r.direction = DVec3::NEG_INFINITY
+            }),
+        ] {
+            for spoiled in [vec![0], vec![37], (0..64).collect()] {
+                let mut rays = good.clone();
+                for &k in &spoiled {
+                    spoil(&mut rays[k]);
+                }
+                assert!(!scene.traces_as_packet(&rays), "{case}");
+                let (closest, any) = batch_queries(&scene, &rays);
+                let mut hits = 0;
+                for (k, r) in rays.iter().enumerate() {
+                    if spoiled.contains(&k) {
+                        assert_eq!((closest[k], any[k]), (None, false), "{case} {k}");
+                    } else {
+                        assert_eq!(closest[k], scene.closest_hit(r), "{case} {k}");
+                        assert_eq!(any[k], scene.any_hit(r), "{case} {k}");
+                        hits += usize::from(any[k]);
+                    }
+                }
+                assert!(
+                    spoiled.len() == 64 || hits > 0,
+                    "{case}: the view sees nothing"
+                );
+            }
+        }
+    }
+}
+
+#[test]
 #[cfg(target_arch = "x86_64")]
 fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
     // A packet tests inner nodes for all its rays at once, so when each of its rays meets
