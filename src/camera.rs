@@ -48,13 +48,27 @@ pub fn look_at_frame(from: DVec3, at: DVec3, up: DVec3, vfov: f64) -> Option<Cam
     }
     let half_height = (vfov.to_radians() / 2.0).tan();
     let right = side.normalize() * half_height;
-    let true_up = right.normalize().cross(forward) * half_height;
+    // `right` is zero when `vfov` is too small for its tangent; `side` is its direction.
+    let true_up =
+        unit(if right == DVec3::ZERO { side } else { right }).cross(forward) * half_height;
     Some(CameraFrame {
         origin: from,
         right,
         up: true_up,
         forward,
     })
+}
+
+/// `v.normalize()`, bit for bit, where `v`'s squared length is a normal float; a shorter
+/// (or longer) `v` is first divided by its largest component, where `normalize` would
+/// give NaN (a `vfov` of 1e-200 degrees makes `right` that short).
+fn unit(v: DVec3) -> DVec3 {
+    let squared = v.length_squared();
+    if squared >= f64::MIN_POSITIVE && squared.is_finite() {
+        v.normalize()
+    } else {
+        (v / v.abs().max_element()).normalize()
+    }
 }
 
 /// A camera bound to an image size.
@@ -79,12 +93,22 @@ struct Lens {
 impl Camera {
     pub fn new(desc: &CameraDesc, width: u32, height: u32) -> Camera {
         let frame = desc.frame;
-        let lens = desc.lens.map(|lens| Lens {
-            radius: lens.radius,
-            focus_distance: lens.focus_distance,
-            lens_x: frame.right.normalize(),
-            lens_y: frame.up.normalize(),
-            axis: frame.forward.normalize(),
+        let lens = desc.lens.map(|lens| {
+            let axis = unit(frame.forward);
+            // A look-at camera's `right` and `up` are zero where `vfov` is too small for
+            // its tangent; the disk is then laid out around the axis.
+            let (lens_x, lens_y) = if frame.right != DVec3::ZERO && frame.up != DVec3::ZERO {
+                (unit(frame.right), unit(frame.up))
+            } else {
+                axis.any_orthonormal_pair()
+            };
+            Lens {
+                radius: lens.radius,
+                focus_distance: lens.focus_distance,
+                lens_x,
+                lens_y,
+                axis,
+            }
         });
         Camera {
             frame,
@@ -470,6 +494,51 @@ mod tests {
         // Looking down +z with up +y, the image's right is world -x: the mirror of the
         // default basis camera.
         assert!(frame.right.x < 0.0);
+    }
+
+    #[test]
+    fn a_field_of_view_too_narrow_for_normalize_still_gives_the_view_direction() {
+        // `right` is then shorter than the square root of the smallest normal float, so
+        // `normalize` alone would give NaN; every ray, pinhole or through a lens focused
+        // on the axis, must still be (nearly) the view direction.
+        let (from, at) = (DVec3::new(0.0, 0.6, 5.0), DVec3::new(0.0, 0.4, 0.0));
+        let forward = (at - from).normalize();
+        for vfov in [1e-100, 1e-200, 31e-300, 5e-324] {
+            let frame = look_at_frame(from, at, DVec3::Y, vfov).unwrap();
+            assert!(frame.up.is_finite() && frame.right.is_finite(), "{vfov}");
+            for lens in [
+                None,
+                Some(ThinLens {
+                    radius: 0.1,
+                    focus_distance: 5.0,
+                }),
+            ] {
+                let camera = Camera::new(&CameraDesc { frame, lens }, 32, 24);
+                for (x, y) in [(0, 0), (31, 23), (16, 12)] {
+                    let ray = camera.ray(x, y, 0.5, 0.5, (0.9, 0.2));
+                    let axis = if lens.is_some() {
+                        (from + forward * 5.0 - ray.origin).normalize()
+                    } else {
+                        forward
+                    };
+                    assert!((ray.direction - axis).length() < 1e-15, "{vfov} {ray:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn unit_is_normalize_bit_for_bit_where_normalize_works() {
+        let mut random = crate::test_random::XorShift::new(5);
+        for _ in 0..10_000 {
+            let v = DVec3::new(random.unit_f64(), random.unit_f64(), random.unit_f64()) - 0.5;
+            let scale = 2f64.powi(random.below(1000) as i32 - 500);
+            assert_eq!(unit(v * scale), (v * scale).normalize(), "{v}");
+            // Far outside that range, the same direction.
+            for far in [v * 1e-300, v * 1e300] {
+                assert!((unit(far) - v.normalize()).length() < 1e-15, "{far}");
+            }
+        }
     }
 
     #[test]
