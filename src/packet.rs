@@ -222,7 +222,8 @@ impl Rows {
 /// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
 /// called for each ray `i` with a triangle hit, the nearest (as [`crate::simd::closest`]
 /// finds it). Returns what the traversal visited, or `None`, calling nothing, when the
-/// rays' directions differ in sign on some axis or a ray has a NaN.
+/// rays' directions differ in sign on some axis, a ray has a NaN, or an origin or
+/// direction is infinite.
 ///
 /// # Safety
 /// The CPU must support AVX2, and AVX-512F too for [`LeafLanes::Sixteen`]; and
@@ -246,8 +247,7 @@ pub unsafe fn closest(
 
 /// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
 /// together; rays leave the packet as soon as they hit. Returns what the traversal
-/// visited, or `None`, touching nothing, when the rays' directions differ in sign on some
-/// axis or a ray has a NaN.
+/// visited, or `None`, touching nothing, as for [`closest`].
 ///
 /// # Safety
 /// As for [`closest`].
@@ -711,8 +711,8 @@ struct PacketBounds {
 
 impl PacketBounds {
     /// The ranges from one pass over the rays, before their per-ray set-up, or `None`
-    /// when the rays' direction signs differ or a value is NaN (they are then traced one
-    /// by one). The reciprocal of a direction is monotone within a sign, so `1/d` at the
+    /// when the rays' direction signs differ, a value is NaN, or an origin or direction
+    /// is infinite (they are then traced one by one). The reciprocal of a direction is monotone within a sign, so `1/d` at the
     /// ends of `d`'s range is exactly the range of the rays' own reciprocals.
     ///
     /// # Safety
@@ -730,19 +730,23 @@ impl PacketBounds {
                 _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
                 _mm256_setzero_ps(),
             );
-            let mut nan = _mm256_setzero_ps();
+            // NaN anywhere, and (`x − x` is NaN) infinite origins and directions.
+            let (mut nan, mut infinite) = (_mm256_setzero_ps(), _mm256_setzero_ps());
             for ray in rays {
                 let v = _mm256_loadu_ps((ray as *const TriangleRay).cast::<f32>());
                 (lo, hi) = (_mm256_min_ps(lo, v), _mm256_max_ps(hi, v));
                 (all, some) = (_mm256_and_ps(all, v), _mm256_or_ps(some, v));
                 nan = _mm256_or_ps(nan, _mm256_cmp_ps::<_CMP_UNORD_Q>(v, v));
+                let zero = _mm256_sub_ps(v, v);
+                infinite = _mm256_or_ps(infinite, _mm256_cmp_ps::<_CMP_UNORD_Q>(zero, zero));
             }
             // Sign bits of the direction (lanes 3–5): set in every ray, or in none.
             let (all, some) = (
                 _mm256_movemask_ps(all) >> 3 & 7,
                 _mm256_movemask_ps(some) >> 3 & 7,
             );
-            if all != some || _mm256_movemask_ps(nan) != 0 {
+            let not_finite = _mm256_movemask_ps(nan) | _mm256_movemask_ps(infinite) & 0x3f;
+            if all != some || not_finite != 0 {
                 return None;
             }
             let mut l = [0f32; 8];
