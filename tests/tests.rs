@@ -16,6 +16,8 @@
 //! - `meshes`: OBJ and glTF fixtures written by the tests.
 //! - `errors`: bad manifests and mesh files refused with a place and cause, no partial
 //!   files, batches going on, exit statuses.
+//! - `mutations`: mutated mesh files and manifests (deterministic) are read, rendered or
+//!   refused, never a panic.
 //! - `robustness`: watertightness, traversal against brute force, deep trees, tiny
 //!   direction components, tiny far spheres.
 //! - `stress`: the stress suite (scale sweeps, leaks, offsets, needles, …) against its
@@ -36,6 +38,7 @@ mod errors;
 mod geometry;
 mod integrators;
 mod meshes;
+mod mutations;
 mod output;
 mod real_models;
 mod robustness;
