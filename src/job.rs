@@ -365,7 +365,8 @@ fn output_key(path: &Path) -> PathBuf {
 }
 
 /// The manifests a command-line `PATH` names: the file itself, or every `*.json` directly
-/// inside a folder, in sorted order.
+/// inside a folder, in sorted order. Folders named `*.json` are not manifests; a `*.json`
+/// that cannot be looked at (a dangling link) is, so that its job fails and says why.
 pub fn manifests_in(path: &Path) -> std::io::Result<Vec<PathBuf>> {
     if !path.is_dir() {
         return Ok(vec![path.to_path_buf()]);
@@ -374,7 +375,8 @@ pub fn manifests_in(path: &Path) -> std::io::Result<Vec<PathBuf>> {
     for entry in std::fs::read_dir(path)? {
         let entry = entry?;
         let file = entry.path();
-        if file.extension().is_some_and(|e| e == "json") && file.is_file() {
+        let readable_kind = std::fs::metadata(&file).map_or(true, |m| m.is_file());
+        if file.extension().is_some_and(|e| e == "json") && readable_kind {
             manifests.push(file);
         }
     }

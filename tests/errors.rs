@@ -415,6 +415,21 @@ fn two_jobs_never_write_the_same_file() {
 }
 
 #[test]
+#[cfg(unix)]
+fn a_dangling_link_in_a_folder_is_a_failed_job_and_a_folder_named_json_is_no_job() {
+    let dir = Dir::new();
+    dir.write("jobs/good.json", format!("{{{IMAGE}}}"));
+    std::os::unix::fs::symlink("nowhere.json", dir.join("jobs/gone.json")).unwrap();
+    std::fs::create_dir_all(dir.join("jobs/folder.json")).unwrap();
+    let run = dir.raybatch(&["render", "jobs"]);
+    assert_eq!(run.status, 1);
+    let lines = run.error_lines();
+    assert_eq!(lines.len(), 1, "{}", run.stderr);
+    assert!(lines[0].contains("jobs/gone.json"), "{}", lines[0]);
+    assert!(dir.exists("jobs/good.ppm"));
+}
+
+#[test]
 fn exit_statuses_are_0_1_and_2() {
     let dir = Dir::new();
     dir.write("good.json", format!("{{{IMAGE}}}"));
