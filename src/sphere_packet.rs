@@ -239,10 +239,15 @@ unsafe fn trace<const ANY: bool>(
             lanes(|r| r.direction.z),
         ];
         let t = lanes(|r| r.tmin);
-        // `x − x` is NaN exactly where `x` is infinite or NaN.
-        for x in o.iter().chain(&d).map(|&x| _mm256_sub_pd(x, x)).chain([t]) {
-            bad = _mm256_or_pd(bad, _mm256_cmp_pd::<_CMP_UNORD_Q>(x, x));
-        }
+        // The sum of a lane's six components is finite only if they all are (it may also
+        // overflow, which only sends the packet ray by ray); `x − x` is NaN exactly where
+        // `x` is not finite.
+        let sum = _mm256_add_pd(
+            _mm256_add_pd(_mm256_add_pd(o[0], o[1]), _mm256_add_pd(o[2], d[0])),
+            _mm256_add_pd(d[1], d[2]),
+        );
+        let zero = _mm256_sub_pd(sum, sum);
+        bad = _mm256_or_pd(bad, _mm256_cmp_pd::<_CMP_UNORD_Q>(zero, t));
         let mut length2 = _mm256_setzero_pd();
         for a in 0..3 {
             let i = _mm256_div_pd(_mm256_set1_pd(1.0), d[a]);
