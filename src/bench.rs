@@ -204,7 +204,21 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         jobs.push(sphere_job(temp, count, (width, height), options.embree)?);
     }
     if let Some(file) = torus_file {
-        jobs.push(mesh_job(temp, &file, (width, height), options.embree)?);
+        jobs.push(mesh_job(
+            temp,
+            &file,
+            (width, height),
+            None,
+            options.embree,
+        )?);
+        let lens = Some(LENS_JOB);
+        jobs.push(mesh_job(
+            temp,
+            &file,
+            (width, height),
+            lens,
+            options.embree,
+        )?);
     }
     Ok(BenchReport {
         scenes: figures,
@@ -671,35 +685,63 @@ fn batch_of_small_jobs(temp: &Path, count: usize) -> Result<JobFigures, String> 
     })
 }
 
-/// One `depth` job of the mesh in `file`, from reading the manifest to writing the image,
-/// each run in a fresh batch (so the mesh is read and its tree built every time); with
-/// `embree`, the same job through the Embree backend in turns with ours.
+/// One `depth` job of the mesh in `file` (through `lens` when given), from reading the
+/// manifest to writing the image, each run in a fresh batch (so the mesh is read and its
+/// tree built every time); with `embree`, the same job through the Embree backend in turns
+/// with ours.
 fn mesh_job(
     temp: &Path,
     file: &Path,
     (width, height): (u32, u32),
+    lens: Option<LensJob>,
     embree: bool,
 ) -> Result<JobFigures, String> {
     let manifest = temp.join("mesh-job.json");
-    let text = serde_json::json!({
+    let mut text = serde_json::json!({
         "image": {"width": width, "height": height},
         "camera": {"look_from": [0, 2, 2.5], "look_at": [0, 0, 0], "vfov": 45},
         "integrator": {"type": "depth"},
         "meshes": [{"file": file}],
         "output": "mesh-job.pfm",
     });
+    let mut what = format!("{width}x{height} depth");
+    if let Some(lens) = lens {
+        text["camera"]["aperture"] = json!(lens.aperture);
+        text["camera"]["focus_distance"] = json!(lens.focus_distance);
+        text["sampler"] = json!({"type": "stratified", "spp": lens.spp, "seed": 1});
+        what += &format!(
+            ", {} spp through a lens of radius {}",
+            lens.spp, lens.aperture
+        );
+    }
     std::fs::write(&manifest, text.to_string()).map_err(|e| e.to_string())?;
     let (seconds, embree_seconds) = job_in_turns(&manifest, embree);
     let name = file
         .file_stem()
         .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
     Ok(JobFigures {
-        name: format!("{name} job ({width}x{height} depth, load + build + render + write)"),
+        name: format!("{name} job ({what}, load + build + render + write)"),
         jobs: 1,
         seconds,
         embree_seconds,
     })
 }
+
+/// A thin lens for [`mesh_job`]: camera rays from points spread over the lens, so a
+/// group's rays share no origin and meet only near the focus plane.
+#[derive(Debug, Clone, Copy)]
+struct LensJob {
+    aperture: f64,
+    focus_distance: f64,
+    spp: u32,
+}
+
+/// The lens of the bench's second torus job: focused on the torus's centre (3.2 away).
+const LENS_JOB: LensJob = LensJob {
+    aperture: 0.05,
+    focus_distance: 3.2,
+    spp: 4,
+};
 
 /// One `depth` job of `count` spheres listed in its manifest ([`scattered_spheres`], the
 /// sphere field's view), from reading the manifest to writing the image, as
