@@ -17,11 +17,12 @@ use glam::DVec3;
 use rayon::prelude::*;
 use serde_json::json;
 
-use crate::camera::{Camera, look_at_frame};
+use crate::camera::{Camera, ThinLens, look_at_frame};
 use crate::hint::AnyHitHint;
 use crate::job::{Backend, Batch, JobOptions};
-use crate::manifest::CameraDesc;
+use crate::manifest::{CameraDesc, SamplerDesc, SamplerKind};
 use crate::ray::Ray;
+use crate::sampler::Sampler;
 use crate::scene::{Scene, SceneGeometry, Tracer};
 use crate::sphere::Sphere;
 
@@ -114,6 +115,9 @@ struct TraceScene {
     target: DVec3,
     vfov: f64,
     size: (u32, u32),
+    /// A thin lens focused on `target`, of this radius: each camera ray then starts at its
+    /// own point of the lens, so a group's rays share no origin.
+    lens_radius: Option<f64>,
 }
 
 /// Runs the benchmarks. `temp` is a scratch folder for files written on the way.
@@ -130,26 +134,47 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
     let mut scenes: Vec<Box<dyn FnOnce() -> Result<TraceScene, String>>> = Vec::new();
     let mut torus_file = None;
 
-    if wanted("torus") {
-        let (rings, sides) = if options.quick {
-            (200, 100)
-        } else {
-            (1000, 500)
-        };
-        let name = format!("torus-{}k", 2 * rings * sides / 1000);
+    let (rings, sides) = if options.quick {
+        (200, 100)
+    } else {
+        (1000, 500)
+    };
+    let name = format!("torus-{}k", 2 * rings * sides / 1000);
+    let small_name = format!("{name} at {}x{}", width / 6, height / 6);
+    let lens_name = format!("{name} through a lens");
+    if [&name, &small_name, &lens_name]
+        .into_iter()
+        .any(|n| wanted(n))
+    {
         let file = temp.join(format!("{name}.obj"));
         let text =
             crate::procedural::to_obj(&crate::procedural::torus(1.0, 0.35, rings, sides), "");
         std::fs::write(&file, text).map_err(|e| format!("{}: {e}", file.display()))?;
         torus_file = Some(file.clone());
-        let small_file = file.clone();
-        let small_name = format!("{name} at {}x{}", width / 6, height / 6);
-        scenes.push(Box::new(move || mesh_scene(&name, &file, (width, height))));
+        if wanted(&name) {
+            let file = file.clone();
+            scenes.push(Box::new(move || mesh_scene(&name, &file, (width, height))));
+        }
+        // The same view through the lens job's lens, focused on the torus's centre: one
+        // ray a pixel, as a render's first sample, so the rays are the pinhole's but for
+        // their origins.
+        if wanted(&lens_name) {
+            let file = file.clone();
+            scenes.push(Box::new(move || {
+                let scene = mesh_scene(&lens_name, &file, (width, height))?;
+                Ok(TraceScene {
+                    lens_radius: Some(LENS_JOB.aperture),
+                    ..scene
+                })
+            }));
+        }
         // The same mesh at a sixth of the resolution: about 17 triangles per pixel, where
         // packets would waste work and rays go one by one.
-        scenes.push(Box::new(move || {
-            mesh_scene(&small_name, &small_file, (width / 6, height / 6))
-        }));
+        if wanted(&small_name) {
+            scenes.push(Box::new(move || {
+                mesh_scene(&small_name, &file, (width / 6, height / 6))
+            }));
+        }
     }
     if let Some(models) = &options.models {
         for model in ["stanford-bunny", "nefertiti", "ogre"] {
@@ -179,6 +204,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
                 target: DVec3::Z,
                 vfov: 90.0,
                 size: (640, 480),
+                lens_radius: None,
             })
         }));
     }
@@ -204,21 +230,17 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         jobs.push(sphere_job(temp, count, (width, height), options.embree)?);
     }
     if let Some(file) = torus_file {
-        jobs.push(mesh_job(
-            temp,
-            &file,
-            (width, height),
-            None,
-            options.embree,
-        )?);
-        let lens = Some(LENS_JOB);
-        jobs.push(mesh_job(
-            temp,
-            &file,
-            (width, height),
-            lens,
-            options.embree,
-        )?);
+        for lens in [None, Some(LENS_JOB)] {
+            if wanted(&mesh_job_name(&file, (width, height), lens)) {
+                jobs.push(mesh_job(
+                    temp,
+                    &file,
+                    (width, height),
+                    lens,
+                    options.embree,
+                )?);
+            }
+        }
     }
     Ok(BenchReport {
         scenes: figures,
@@ -253,6 +275,7 @@ fn mesh_scene(name: &str, file: &Path, size: (u32, u32)) -> Result<TraceScene, S
         target: centre,
         vfov: 40.0,
         size,
+        lens_radius: None,
     })
 }
 
@@ -294,6 +317,7 @@ fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
         target: DVec3::ZERO,
         vfov: SPHERE_FIELD_VFOV,
         size,
+        lens_radius: None,
     }
 }
 
@@ -314,17 +338,27 @@ fn builds_enough(times: &[f64]) -> bool {
 }
 
 /// The pixel-centre rays, in 8 × 8 groups of neighbouring pixels (as the renderer traces
-/// them), the same order for every tracer.
+/// them), the same order for every tracer; through the scene's lens when it has one.
 fn camera_rays(scene: &TraceScene) -> Vec<Ray> {
     let frame = look_at_frame(scene.eye, scene.target, DVec3::Y, scene.vfov).expect("a valid view");
     let (w, h) = scene.size;
-    let camera = Camera::new(&CameraDesc { frame, lens: None }, w, h);
+    let lens = scene.lens_radius.map(|radius| ThinLens {
+        radius,
+        focus_distance: (scene.target - scene.eye).length(),
+    });
+    let camera = Camera::new(&CameraDesc { frame, lens }, w, h);
+    // Lens points as a render's first sample takes them (the pinhole ignores them).
+    let sampler = Sampler::new(&SamplerDesc {
+        kind: SamplerKind::Independent,
+        spp: 1,
+        seed: 1,
+    });
     let side = crate::render::PACKET_SIDE;
     let mut pixels: Vec<(u32, u32)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
     pixels.sort_by_key(|&(x, y)| (y / side, x / side, y % side, x % side));
     pixels
         .into_iter()
-        .map(|(x, y)| camera.ray(x, y, 0.5, 0.5, (0.5, 0.5)))
+        .map(|(x, y)| camera.ray(x, y, 0.5, 0.5, sampler.lens(x, y, 0)))
         .collect()
 }
 
@@ -704,27 +738,33 @@ fn mesh_job(
         "meshes": [{"file": file}],
         "output": "mesh-job.pfm",
     });
-    let mut what = format!("{width}x{height} depth");
     if let Some(lens) = lens {
         text["camera"]["aperture"] = json!(lens.aperture);
         text["camera"]["focus_distance"] = json!(lens.focus_distance);
         text["sampler"] = json!({"type": "stratified", "spp": lens.spp, "seed": 1});
-        what += &format!(
-            ", {} spp through a lens of radius {}",
-            lens.spp, lens.aperture
-        );
     }
     std::fs::write(&manifest, text.to_string()).map_err(|e| e.to_string())?;
     let (seconds, embree_seconds) = job_in_turns(&manifest, embree);
-    let name = file
-        .file_stem()
-        .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
     Ok(JobFigures {
-        name: format!("{name} job ({what}, load + build + render + write)"),
+        name: mesh_job_name(file, (width, height), lens),
         jobs: 1,
         seconds,
         embree_seconds,
     })
+}
+
+/// [`mesh_job`]'s row name.
+fn mesh_job_name(file: &Path, (width, height): (u32, u32), lens: Option<LensJob>) -> String {
+    let name = file
+        .file_stem()
+        .map_or_else(String::new, |s| s.to_string_lossy().into_owned());
+    let lens = lens.map_or_else(String::new, |lens| {
+        format!(
+            ", {} spp through a lens of radius {}",
+            lens.spp, lens.aperture
+        )
+    });
+    format!("{name} job ({width}x{height} depth{lens}, load + build + render + write)")
 }
 
 /// A thin lens for [`mesh_job`]: camera rays from points spread over the lens, so a
