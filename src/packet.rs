@@ -22,8 +22,8 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, TriLanes, block_pair_test, block_test, distance, lanes4, lanes8, pack, prefetch_child,
-    push_sorted, row_constants, row_test, slab_test,
+    STACK, TriLanes, block_pair_test, block_test, distance, lanes3, lanes4, lanes8, pack,
+    prefetch_child, push_sorted, row_constants, row_test, slab_test,
 };
 use crate::simd512::{self, lanes16};
 use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit};
@@ -333,7 +333,7 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
     rays: &[TriangleRay],
-    mut closest: impl FnMut(usize, Nearest, TriangleHit),
+    closest: impl FnMut(usize, Nearest, TriangleHit),
     any: &mut [bool],
 ) -> Option<Visits> {
     assert!(rays.len() <= PACKET);
@@ -341,18 +341,43 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
         bvh.stack_bound() <= STACK,
         "the scalar path handles deeper trees"
     );
-    let n = rays.len();
-    let mut visits = Visits::default();
-    if n == 0 {
-        return Some(visits);
+    if rays.is_empty() {
+        return Some(Visits::default());
     }
     // SAFETY: AVX2 is enabled where `trace` inlines.
     let packet = unsafe { PacketBounds::of(rays) }?;
     any.fill(false);
     // SAFETY: as above.
     if unsafe { packet.misses(&bvh.bounds()) } {
-        return Some(visits);
+        return Some(Visits::default());
     }
+    // Compiled apart, so that a common origin's node test has nothing to shift.
+    // SAFETY: as required of this function.
+    unsafe {
+        if packet.shift == 0.0 {
+            traverse::<ANY, WIDE, false>(&packet, bvh, blocks, rays, closest, any)
+        } else {
+            traverse::<ANY, WIDE, true>(&packet, bvh, blocks, rays, closest, any)
+        }
+    }
+}
+
+/// [`trace`] past the packet's bounds: `SHIFTED` when they are taken from the rays' waist
+/// ([`PacketBounds::shift`] is not 0).
+///
+/// # Safety
+/// As for [`trace`], into which it inlines.
+#[inline(always)]
+unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
+    packet: &PacketBounds,
+    bvh: &Bvh<f32>,
+    blocks: &[TriangleBlock],
+    rays: &[TriangleRay],
+    mut closest: impl FnMut(usize, Nearest, TriangleHit),
+    any: &mut [bool],
+) -> Option<Visits> {
+    let n = rays.len();
+    let mut visits = Visits::default();
     // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
     // never hit (their tmax is −∞).
     let mut origin = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
@@ -371,6 +396,8 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
     let mut shared_axes = [false; ROWS];
     // The largest horizon over the rays still searching.
     let mut packet_tmax = packet.horizon;
+    // The same for the node test (less the packet's shift).
+    let mut node_tmax = packet.node_tmax::<SHIFTED>(packet_tmax);
     // Each row's set-up at once, a ray per lane: the divisions and choices of
     // `simd::ray_constants`, the same IEEE operations lane by lane (so bit-identical).
     for r in 0..ROWS {
@@ -424,7 +451,7 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
             let load = |offset: usize| unsafe { _mm256_load_ps(planes.add(offset)) };
             // SAFETY: AVX2 is enabled where `trace` inlines.
             let (mask, enter) =
-                unsafe { packet.enters(near.map(load), far.map(load), packet_tmax) };
+                unsafe { packet.enters::<SHIFTED>(near.map(load), far.map(load), node_tmax) };
             if mask != 0 {
                 let mut entries = [0f32; WIDTH];
                 // SAFETY: `entries` holds eight floats.
@@ -674,6 +701,7 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
                 // SAFETY: `lanes` holds eight floats.
                 unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), widest) };
                 packet_tmax = lanes.into_iter().fold(f32::NEG_INFINITY, f32::max);
+                node_tmax = packet.node_tmax::<SHIFTED>(packet_tmax);
             }
         }
         // The next entry that some ray may still need.
@@ -697,16 +725,43 @@ unsafe fn trace<const ANY: bool, const WIDE: bool>(
     }
 }
 
+/// A ray's origin and direction as float64 lanes x, y, z; the fourth lane holds the
+/// ray's next float, for callers to leave out.
+///
+/// # Safety
+/// Only from a function with AVX enabled.
+#[inline(always)]
+unsafe fn origin_and_direction(ray: &TriangleRay) -> (__m256d, __m256d) {
+    let floats = (ray as *const TriangleRay).cast::<f32>();
+    // SAFETY: a `TriangleRay` is eight floats (origin, direction, tmin, tmax), so both
+    // loads of four stay inside it; AVX is enabled in the caller.
+    unsafe {
+        (
+            _mm256_cvtps_pd(_mm_loadu_ps(floats)),
+            _mm256_cvtps_pd(_mm_loadu_ps(floats.add(3))),
+        )
+    }
+}
+
+/// How much a packet bounded from its waist widens each end of its node test, per unit
+/// of distance: 64u, u = 2⁻²⁴ (see [`PacketBounds::enters`]).
+const SHIFTED_SLACK: f32 = 32.0 * f32::EPSILON;
+
 /// A packet's ranges over its rays, per axis `(smallest, largest)`: origin, reciprocal
 /// direction for near planes and for far ones; the smallest `tmin` and the largest
 /// horizon; and the octant its directions share (1 where negative).
 struct PacketBounds {
     octant: [usize; 3],
+    /// The range of each ray's point at distance `shift` (its origin when `shift` is 0).
     origin: [(f32, f32); 3],
     inv: [(f32, f32); 3],
     inv_far: [(f32, f32); 3],
+    /// The smallest `tmin`, less `shift` (rounded down).
     tmin: f32,
     horizon: f32,
+    /// Where the rays come closest together, when their origins differ (a lens): the node
+    /// test bounds distances from there, `t − shift`. Zero for a common origin.
+    shift: f32,
 }
 
 impl PacketBounds {
@@ -765,14 +820,94 @@ impl PacketBounds {
                 _mm_mul_ps(inv_hi, scale),
             ]
             .map(lanes4);
-            Some(PacketBounds {
+            let mut bounds = PacketBounds {
                 octant: [0, 1, 2].map(|a| (all >> a & 1) as usize),
                 origin: [0, 1, 2].map(|a| (l[a], h[a])),
                 inv: [0, 1, 2].map(|a| (inv_lo[a], inv_hi[a])),
                 inv_far: [0, 1, 2].map(|a| (far_lo[a], far_hi[a])),
                 tmin: l[6],
                 horizon: Nearest::before(h[7]).horizon(),
-            })
+                shift: 0.0,
+            };
+            if (0..3).any(|a| l[a] != h[a]) {
+                bounds.shift_to_waist(rays);
+            }
+            Some(bounds)
+        }
+    }
+
+    /// Moves the packet's reference points from the rays' origins to where the rays come
+    /// closest together (their waist: the focus plane, for a lens's rays). Spread over a
+    /// lens, the origins make the node test's bounds several times wider than the rays'
+    /// own spread near the surfaces they meet; from the waist, about as narrow as a
+    /// pinhole's. The distance `s` minimizes the rays' spread (least squares, any `s`
+    /// would be correct); each ray's point `o + s·d` is computed in float64 (`s · d` is
+    /// exact, the sum within half a unit in the last place) and the ranges rounded
+    /// outward, so they hold the exact points. (AVX2 only: called from [`PacketBounds::of`].)
+    #[target_feature(enable = "avx2")]
+    fn shift_to_waist(&mut self, rays: &[TriangleRay]) {
+        // Sums of differences from the first ray, which do not cancel.
+        // SAFETY: AVX2 is enabled here.
+        let (o0, d0) = unsafe { origin_and_direction(&rays[0]) };
+        let zero = _mm256_setzero_pd();
+        let (mut sum_o, mut sum_d, mut sum_od, mut sum_dd) = (zero, zero, zero, zero);
+        for ray in rays {
+            // SAFETY: as above.
+            let (o, d) = unsafe { origin_and_direction(ray) };
+            let (o, d) = (_mm256_sub_pd(o, o0), _mm256_sub_pd(d, d0));
+            sum_o = _mm256_add_pd(sum_o, o);
+            sum_d = _mm256_add_pd(sum_d, d);
+            sum_od = _mm256_add_pd(sum_od, _mm256_mul_pd(o, d));
+            sum_dd = _mm256_add_pd(sum_dd, _mm256_mul_pd(d, d));
+        }
+        let count = _mm256_set1_pd(rays.len() as f64);
+        // Per axis, the covariance of origin and direction and the variance of direction
+        // (times the count).
+        // SAFETY: AVX2 is enabled here.
+        let (covariance, variance) = unsafe {
+            (
+                lanes3(_mm256_sub_pd(
+                    sum_od,
+                    _mm256_div_pd(_mm256_mul_pd(sum_o, sum_d), count),
+                )),
+                lanes3(_mm256_sub_pd(
+                    sum_dd,
+                    _mm256_div_pd(_mm256_mul_pd(sum_d, sum_d), count),
+                )),
+            )
+        };
+        let s = (-covariance.iter().sum::<f64>() / variance.iter().sum::<f64>()) as f32;
+        // Only ahead of the origins: rays that spread from the start gain nothing.
+        if !(s > 0.0 && s.is_finite()) {
+            return;
+        }
+        let distance = _mm256_set1_pd(f64::from(s));
+        let (mut lo, mut hi) = (
+            _mm256_set1_pd(f64::INFINITY),
+            _mm256_set1_pd(f64::NEG_INFINITY),
+        );
+        for ray in rays {
+            // SAFETY: as above.
+            let (o, d) = unsafe { origin_and_direction(ray) };
+            let point = _mm256_add_pd(o, _mm256_mul_pd(distance, d));
+            (lo, hi) = (_mm256_min_pd(lo, point), _mm256_max_pd(hi, point));
+        }
+        // SAFETY: as above.
+        let (lo, hi) = unsafe { (lanes3(lo), lanes3(hi)) };
+        self.origin =
+            [0, 1, 2].map(|a| (crate::bvh::f32_below(lo[a]), crate::bvh::f32_above(hi[a])));
+        self.tmin = crate::bvh::f32_below(f64::from(self.tmin) - f64::from(s));
+        self.shift = s;
+    }
+
+    /// The node test's `tmax` for rays that search up to `horizon`: `horizon − shift`,
+    /// rounded up.
+    #[inline(always)]
+    fn node_tmax<const SHIFTED: bool>(&self, horizon: f32) -> f32 {
+        if !SHIFTED {
+            horizon
+        } else {
+            crate::bvh::f32_above(f64::from(horizon) - f64::from(self.shift))
         }
     }
 
@@ -799,17 +934,45 @@ impl PacketBounds {
             [0, 1, 2].map(|a| side(a, true)),
         );
         // SAFETY: as above.
-        unsafe { self.enters(near, far, self.horizon) }.0 == 0
+        unsafe { self.enters_from(near, far, self.horizon) }.0 == 0
     }
 
-    /// Which of eight boxes, given by their near and far planes per axis, some ray of the
-    /// packet may enter with `tmin <= t <= tmax` (a lane mask), and the packet's lower
-    /// bound on the entry distance into each.
+    /// [`PacketBounds::enters`] for rays that search up to `horizon`, in the frame the
+    /// packet was bounded in. The traversal picks the frame once per packet instead.
     ///
     /// # Safety
     /// Only from a function with AVX2 enabled.
     #[inline(always)]
-    unsafe fn enters(&self, near: [__m256; 3], far: [__m256; 3], tmax: f32) -> (u32, __m256) {
+    unsafe fn enters_from(
+        &self,
+        near: [__m256; 3],
+        far: [__m256; 3],
+        horizon: f32,
+    ) -> (u32, __m256) {
+        // SAFETY: as required of the caller.
+        unsafe {
+            if self.shift == 0.0 {
+                self.enters::<false>(near, far, horizon)
+            } else {
+                self.enters::<true>(near, far, self.node_tmax::<true>(horizon))
+            }
+        }
+    }
+
+    /// Which of eight boxes, given by their near and far planes per axis, some ray of the
+    /// packet may enter with `tmin <= t <= tmax` (a lane mask), and the packet's lower
+    /// bound on the entry distance into each. `tmax` is [`PacketBounds::node_tmax`]'s;
+    /// `SHIFTED` when [`PacketBounds::shift`] is not 0.
+    ///
+    /// # Safety
+    /// Only from a function with AVX2 enabled.
+    #[inline(always)]
+    unsafe fn enters<const SHIFTED: bool>(
+        &self,
+        near: [__m256; 3],
+        far: [__m256; 3],
+        tmax: f32,
+    ) -> (u32, __m256) {
         // SAFETY: AVX2 is enabled in the caller.
         unsafe {
             let mut enter = _mm256_set1_ps(self.tmin);
@@ -818,6 +981,28 @@ impl PacketBounds {
                 let (o, i, f) = (self.origin[a], self.inv[a], self.inv_far[a]);
                 enter = _mm256_max_ps(corners(near[a], o, i, Bound::Lower), enter);
                 exit = _mm256_min_ps(corners(far[a], o, f, Bound::Upper), exit);
+            }
+            if SHIFTED {
+                // The packet must admit every box a ray's own test admits, and that test
+                // rounds in proportion to distances from the ray's origin, `|t| <= |t'| +
+                // shift`: entries low by up to 3u|t| (u = 2⁻²⁴), exits high by up to 21u|t|
+                // (`EXIT_SCALE` and rounding). From the waist, `t'` is within 3u|t'|, and an
+                // exit behind the waist up to 19u|t'| low (its scaled reciprocal narrows a
+                // negative `t'`). Widening both ends by 64u(|t'| + shift) covers each case,
+                // behind the origins too. The entry is then returned as a distance from
+                // the origins, `t' + shift`, rounded down by 64u of it.
+                let sign = _mm256_set1_ps(-0.0);
+                let shift = _mm256_set1_ps(self.shift);
+                let slack = |x: __m256, from_origins: f32| {
+                    let size =
+                        _mm256_add_ps(_mm256_andnot_ps(sign, x), _mm256_set1_ps(from_origins));
+                    _mm256_mul_ps(size, _mm256_set1_ps(SHIFTED_SLACK))
+                };
+                enter = _mm256_sub_ps(enter, slack(enter, self.shift));
+                exit = _mm256_add_ps(exit, slack(exit, self.shift));
+                let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
+                let from_origin = _mm256_add_ps(enter, shift);
+                return (mask, _mm256_sub_ps(from_origin, slack(from_origin, 0.0)));
             }
             let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit)) as u32;
             (mask, enter)
@@ -931,5 +1116,150 @@ mod tests {
             record(tree, unjudged);
             assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
         }
+    }
+
+    /// The packet's node test of the eight boxes of `node`, in the frame it was bounded
+    /// in ([`PacketBounds::enters_from`]), as its traversal takes it: the child mask.
+    #[target_feature(enable = "avx2")]
+    fn packet_mask(packet: &PacketBounds, node: &crate::bvh::Node<f32>) -> u32 {
+        let plane = |side: usize, a: usize| {
+            // SAFETY: AVX2 is enabled here; `planes[side][a]` holds eight floats.
+            unsafe { _mm256_loadu_ps(node.planes[side][a].as_ptr()) }
+        };
+        let near = [0, 1, 2].map(|a| plane(packet.octant[a], a));
+        let far = [0, 1, 2].map(|a| plane(1 - packet.octant[a], a));
+        // SAFETY: AVX2 is enabled here.
+        unsafe { packet.enters_from(near, far, packet.horizon).0 }
+    }
+
+    /// The packet's bounds of `rays`, from a function with AVX2 enabled.
+    #[target_feature(enable = "avx2")]
+    fn bounds_of(rays: &[TriangleRay]) -> Option<PacketBounds> {
+        // SAFETY: AVX2 is enabled here.
+        unsafe { PacketBounds::of(rays) }
+    }
+
+    /// A packet admits every box that one of its rays' own node tests admits
+    /// ([`crate::bvh::intersect_node`], with the ray's horizon), so that packets and single
+    /// rays visit the same triangles and find the same hits. Lens packets are bounded
+    /// from their waist ([`PacketBounds::shift`]), where distances are small, but a ray's
+    /// own test rounds (and widens its exits) in proportion to its distance from its
+    /// origin; the boxes here are what that rounding decides: each ray leaves one slab at
+    /// `t0` and enters another `k` units in the last place of `t0` later, for `t0` before,
+    /// at and past the waist, at several scales and places.
+    #[test]
+    fn a_packet_admits_every_box_its_rays_own_tests_admit() {
+        if !is_x86_feature_detected!("avx2") {
+            return;
+        }
+        use crate::bvh::{BoxRay, Node, intersect_node};
+        use glam::DVec3;
+        let ray = |origin: DVec3, direction: DVec3| TriangleRay {
+            origin: origin.as_vec3().to_array(),
+            direction: direction.as_vec3().to_array(),
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        };
+        let mut random = crate::test_random::XorShift::new(17);
+        // Packets of 64 rays, each with the distance where its rays meet (or would).
+        let mut packets: Vec<(Vec<TriangleRay>, f64)> = Vec::new();
+        for (scale, eye) in [
+            (1.0, DVec3::ZERO),
+            (1e-3, DVec3::new(0.2, -0.1, 0.3)),
+            (1e4, DVec3::new(3e4, -1e4, 2e4)),
+            (1.0, DVec3::new(700.0, 300.0, -900.0)),
+        ] {
+            // Camera rays through 8 × 8 pixels of a 256² image with a 40° field, or all
+            // through one pixel, from a pinhole or a lens focused at 3 (times the scale),
+            // in a view whose directions are positive on every axis.
+            let focus = 3.0 * scale;
+            let forward = DVec3::new(0.4, 0.5, 0.77).normalize();
+            let right = forward.cross(DVec3::Y).normalize();
+            let up = right.cross(forward);
+            let half = 20f64.to_radians().tan();
+            for (aperture, pixels) in [(0.0, 8), (0.02, 8), (0.2, 8), (0.02, 1), (0.2, 1)] {
+                let rays = (0..64).map(|i| {
+                    let (x, y) = (f64::from(i % pixels + 40), f64::from(i / 8 % pixels + 90));
+                    let pixel = forward
+                        + right * half * (2.0 * (x + 0.5) / 256.0 - 1.0)
+                        + up * half * (1.0 - 2.0 * (y + 0.5) / 256.0);
+                    let target = eye + pixel * (focus / pixel.dot(forward));
+                    let r = random.unit_f64().sqrt() * aperture * scale;
+                    let angle = random.unit_f64() * std::f64::consts::TAU;
+                    let origin = eye + (right * angle.cos() + up * angle.sin()) * r;
+                    ray(origin, (target - origin).normalize())
+                });
+                packets.push((rays.collect(), focus));
+            }
+        }
+        // Rays that meet exactly, in float32, at one point 4 along each (their origins
+        // `p − 4d` are exact): the packet's bounds from there are as narrow as they can be.
+        let p = DVec3::new(1.5, 2.25, 3.0);
+        let exact = (0..64).map(|_| {
+            let mut grid = |base: f64| base + random.below(400) as f64 / 4096.0;
+            let d = DVec3::new(grid(0.25), grid(0.5), grid(0.75));
+            ray(p - 4.0 * d, d)
+        });
+        packets.push((exact.collect(), 4.0));
+
+        let (mut shifted, mut borderline) = (0, 0);
+        for (rays, focus) in &packets {
+            // SAFETY: the CPU has AVX2 (checked above).
+            let packet = unsafe { bounds_of(rays) }.expect("one octant, finite");
+            shifted += usize::from(packet.shift != 0.0);
+            for (i, ray) in rays.iter().enumerate().step_by(5) {
+                let (o, d) = (ray.origin.map(f64::from), ray.direction.map(f64::from));
+                let point = |t: f64| [0, 1, 2].map(|a| o[a] + t * d[a]);
+                let own = BoxRay::new(ray.origin, ray.direction, ray.tmin);
+                let horizon = Nearest::before(ray.tmax).horizon();
+                for t0 in [0.3, 0.7, 0.95, 1.0, 1.02, 1.3, 3.0].map(|f| f * focus) {
+                    for (leave, enter) in [(0, 1), (1, 2), (2, 0), (1, 0)] {
+                        let third = 3 - leave - enter;
+                        for ks in (-8..56).collect::<Vec<i32>>().chunks(WIDTH) {
+                            let mut node = Node {
+                                planes: [[[0f32; WIDTH]; 3]; 2],
+                                children: [0; WIDTH],
+                            };
+                            for (lane, &k) in ks.iter().enumerate() {
+                                let t1 = t0 * (1.0 + f64::from(k) * 2f64.powi(-24));
+                                // Inside each slab over these distances.
+                                let spans = [
+                                    (leave, 0.5 * t0, t0),
+                                    (enter, t1, 2.0 * t1),
+                                    (third, 0.5 * t0, 2.0 * t1),
+                                ];
+                                for (axis, from, to) in spans {
+                                    let (p, q) = (point(from)[axis], point(to)[axis]);
+                                    node.planes[0][axis][lane] = p.min(q) as f32;
+                                    node.planes[1][axis][lane] = p.max(q) as f32;
+                                }
+                            }
+                            let own_mask = intersect_node(&node, &own, horizon).0;
+                            // SAFETY: as above.
+                            let packet_mask = unsafe { packet_mask(&packet, &node) };
+                            for (lane, &k) in ks.iter().enumerate() {
+                                let admitted = own_mask >> lane & 1 == 1;
+                                borderline += usize::from(admitted && k > 0);
+                                assert!(
+                                    !admitted || packet_mask >> lane & 1 == 1,
+                                    "ray {i} of {:?}… enters the box it leaves slab {leave} of \
+                                     at {t0} and enters slab {enter} of {k} ulps later; its \
+                                     packet (shift {}) does not",
+                                    rays[0],
+                                    packet.shift
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        // Lens packets were bounded from their waist, and rays' own tests admitted boxes
+        // they leave before entering (the rounding the packet must cover).
+        assert_eq!(shifted, 17);
+        assert!(
+            borderline > 100,
+            "{borderline} boxes admitted past the exit"
+        );
     }
 }

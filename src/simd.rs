@@ -63,6 +63,18 @@ pub(crate) fn lanes4(x: __m128) -> [f32; 4] {
     out
 }
 
+/// The first three lanes of `x`.
+///
+/// # Safety
+/// Only from a function with AVX enabled.
+#[inline(always)]
+pub(crate) unsafe fn lanes3(x: __m256d) -> [f64; 3] {
+    let mut out = [0f64; 4];
+    // SAFETY: `out` holds four doubles; AVX is enabled in the caller.
+    unsafe { _mm256_storeu_pd(out.as_mut_ptr(), x) };
+    [out[0], out[1], out[2]]
+}
+
 // The helpers below are `#[inline(always)] unsafe fn` without `#[target_feature]` (the two
 // cannot be combined): they are called only from the AVX2 traversals, into which they and
 // their intrinsics inline.

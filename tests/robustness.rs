@@ -676,6 +676,54 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
             ));
         }
     }
+    // Rays through a thin lens, in 8 × 8 tiles: origins spread over a disk, meeting at a
+    // focus plane in front of, among or behind the surfaces. Packets bound them from where
+    // they meet, so boxes before that plane are at negative distances from it.
+    let lens_start = rays.len();
+    // The batch queries take 64 rays at a time from the first: each tile is a packet.
+    assert_eq!(lens_start % 64, 0);
+    let mut lens = Numbers(7);
+    for (eye, focus, aperture, (tmin, tmax)) in [
+        (
+            DVec3::new(0.01, 0.02, -0.5),
+            0.3,
+            0.05,
+            (0.0, f64::INFINITY),
+        ),
+        (
+            DVec3::new(0.03, -0.04, -4.0),
+            2.5,
+            0.2,
+            (0.0, f64::INFINITY),
+        ),
+        (
+            DVec3::new(0.03, -0.04, -4.0),
+            4.0,
+            0.2,
+            (3.5, f64::INFINITY),
+        ),
+        (DVec3::new(0.03, -0.04, -4.0), 9.0, 0.4, (0.0, 4.2)),
+    ] {
+        // A 32 × 32 corner of a 512² image off the axis: pixels narrow against the lens,
+        // and directions of one sign on each axis.
+        for tile in 0..16 {
+            for i in 0..64 {
+                let (x, y) = (288 + tile % 4 * 8 + i % 8, 288 + tile / 4 * 8 + i / 8);
+                let d = DVec3::from_array(crate::util::default_camera_direction(x, y, 512, 512));
+                let (radius, angle) = (
+                    lens.range(0.0, 1.0).sqrt() * aperture,
+                    lens.range(0.0, std::f64::consts::TAU),
+                );
+                let origin = eye + DVec3::new(radius * angle.cos(), radius * angle.sin(), 0.0);
+                rays.push(Ray {
+                    tmin,
+                    tmax,
+                    ..ray(origin, eye + d * (focus / d.z))
+                });
+            }
+        }
+    }
+    let lens_end = rays.len();
     for target in shared_targets(&ico.triangles).into_iter().step_by(7) {
         rays.push(ray(DVec3::new(0.01, -0.02, 0.03), target));
     }
@@ -732,6 +780,10 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
                     .chunks(64)
                     .all(|group| scene.traces_as_packet(group))
             );
+            // Lens tiles off the axis keep their direction signs.
+            let lens_groups = rays[lens_start..lens_end].chunks(64);
+            let lens_packets = lens_groups.filter(|g| scene.traces_as_packet(g)).count();
+            assert!(lens_packets >= 56, "{lens_packets} lens packets of 64");
             for wide in [false, true] {
                 scene.set_wide_leaves(wide);
                 if wide && !scene.uses_wide_leaves() {
