@@ -1,16 +1,18 @@
 //! Trace throughput on procedural scenes (no downloads): closest-hit and any-hit camera
 //! rays through a torus mesh; and, in the `packets` groups, batches of 64 neighbouring
 //! camera rays (`Scene::closest_hits`) paced, always as packets, and ray by ray, on an
-//! 82k-triangle icosphere and a 10,000-sphere field at a low and a high resolution.
+//! 82k-triangle icosphere and a 10,000-sphere field at a low and a high resolution, and
+//! at the high one through a thin lens.
 //!
 //!     cargo bench --bench trace
 //!     cargo bench --bench trace -- packets
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DMat4, DVec3};
-use raybatch::camera::{Camera, look_at_frame};
-use raybatch::manifest::CameraDesc;
+use raybatch::camera::{Camera, ThinLens, look_at_frame};
+use raybatch::manifest::{CameraDesc, SamplerDesc, SamplerKind};
 use raybatch::mesh::{Geometry, Instance, MeshFile};
+use raybatch::sampler::Sampler;
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry, procedural};
 use std::sync::Arc;
 
@@ -67,17 +69,28 @@ fn trace(c: &mut Criterion) {
 }
 
 /// Camera rays of a `size` × `size` view from `eye` toward the origin (90° field), in
-/// 8 × 8 tiles of neighbouring pixels, as the renderer groups them.
-fn tiled_rays(eye: DVec3, size: u32) -> Vec<Ray> {
+/// 8 × 8 tiles of neighbouring pixels, as the renderer groups them; with `lens`, through
+/// a thin lens of that radius focused on the origin, lens points as a render's first
+/// sample takes them.
+fn tiled_rays(eye: DVec3, size: u32, lens: Option<f64>) -> Vec<Ray> {
     let frame = look_at_frame(eye, DVec3::ZERO, DVec3::Y, 90.0).unwrap();
-    let camera = Camera::new(&CameraDesc { frame, lens: None }, size, size);
+    let lens = lens.map(|radius| ThinLens {
+        radius,
+        focus_distance: eye.length(),
+    });
+    let camera = Camera::new(&CameraDesc { frame, lens }, size, size);
+    let sampler = Sampler::new(&SamplerDesc {
+        kind: SamplerKind::Independent,
+        spp: 1,
+        seed: 1,
+    });
     let mut pixels: Vec<(u32, u32)> = (0..size)
         .flat_map(|y| (0..size).map(move |x| (x, y)))
         .collect();
     pixels.sort_by_key(|&(x, y)| (y / 8, x / 8, y % 8, x % 8));
     pixels
         .into_iter()
-        .map(|(x, y)| camera.ray(x, y, 0.5, 0.5, (0.5, 0.5)))
+        .map(|(x, y)| camera.ray(x, y, 0.5, 0.5, sampler.lens(x, y, 0)))
         .collect()
 }
 
@@ -114,18 +127,25 @@ fn packets(c: &mut Criterion) {
     let eye = DVec3::new(1.5, 0.9, 1.5);
     for size in [128, 1024] {
         let name = format!("packets/icosphere-82k-{size}");
-        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size));
+        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, None));
     }
+    // A lens three times as wide as a tile's footprint at the focus (DEVELOPERS.md, "Lens
+    // packets are bounded from where their rays meet").
+    let rays = tiled_rays(eye, 1024, Some(0.05));
+    batch_against_single(c, "packets/icosphere-82k-1024-lens", &mut scene, &rays);
 
     let mut scene = Scene::build(&SceneGeometry {
         spheres: raybatch::bench::scattered_spheres(10_000),
         ..SceneGeometry::default()
     });
+    let eye = DVec3::new(8.0, 12.0, 30.0) * 0.6;
     for size in [64, 1024] {
         let name = format!("packets/spheres-10k-{size}");
-        let rays = tiled_rays(DVec3::new(8.0, 12.0, 30.0) * 0.6, size);
-        batch_against_single(c, &name, &mut scene, &rays);
+        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, None));
     }
+    // Sphere packets are bounded from the rays' origins, lens or not.
+    let rays = tiled_rays(eye, 1024, Some(0.3));
+    batch_against_single(c, "packets/spheres-10k-1024-lens", &mut scene, &rays);
 }
 
 criterion_group!(benches, trace, packets);
