@@ -62,6 +62,8 @@ pub mod triangle;
 #[cfg(feature = "embree")]
 pub mod verify;
 
+#[cfg(all(test, target_arch = "x86_64"))]
+mod packet_cases;
 #[cfg(test)]
 mod test_random;
 

@@ -1153,103 +1153,54 @@ mod tests {
             return;
         }
         use crate::bvh::{BoxRay, Node, intersect_node};
-        use glam::DVec3;
-        let ray = |origin: DVec3, direction: DVec3| TriangleRay {
-            origin: origin.as_vec3().to_array(),
-            direction: direction.as_vec3().to_array(),
-            tmin: 0.0,
-            tmax: f32::INFINITY,
-        };
+        use crate::packet_cases::{edge_boxes, lens_packets};
         let mut random = crate::test_random::XorShift::new(17);
-        // Packets of 64 rays, each with the distance where its rays meet (or would).
-        let mut packets: Vec<(Vec<TriangleRay>, f64)> = Vec::new();
-        for (scale, eye) in [
-            (1.0, DVec3::ZERO),
-            (1e-3, DVec3::new(0.2, -0.1, 0.3)),
-            (1e4, DVec3::new(3e4, -1e4, 2e4)),
-            (1.0, DVec3::new(700.0, 300.0, -900.0)),
-        ] {
-            // Camera rays through 8 × 8 pixels of a 256² image with a 40° field, or all
-            // through one pixel, from a pinhole or a lens focused at 3 (times the scale),
-            // in a view whose directions are positive on every axis.
-            let focus = 3.0 * scale;
-            let forward = DVec3::new(0.4, 0.5, 0.77).normalize();
-            let right = forward.cross(DVec3::Y).normalize();
-            let up = right.cross(forward);
-            let half = 20f64.to_radians().tan();
-            for (aperture, pixels) in [(0.0, 8), (0.02, 8), (0.2, 8), (0.02, 1), (0.2, 1)] {
-                let rays = (0..64).map(|i| {
-                    let (x, y) = (f64::from(i % pixels + 40), f64::from(i / 8 % pixels + 90));
-                    let pixel = forward
-                        + right * half * (2.0 * (x + 0.5) / 256.0 - 1.0)
-                        + up * half * (1.0 - 2.0 * (y + 0.5) / 256.0);
-                    let target = eye + pixel * (focus / pixel.dot(forward));
-                    let r = random.unit_f64().sqrt() * aperture * scale;
-                    let angle = random.unit_f64() * std::f64::consts::TAU;
-                    let origin = eye + (right * angle.cos() + up * angle.sin()) * r;
-                    ray(origin, (target - origin).normalize())
-                });
-                packets.push((rays.collect(), focus));
-            }
-        }
-        // Rays that meet exactly, in float32, at one point 4 along each (their origins
-        // `p − 4d` are exact): the packet's bounds from there are as narrow as they can be.
-        let p = DVec3::new(1.5, 2.25, 3.0);
-        let exact = (0..64).map(|_| {
-            let mut grid = |base: f64| base + random.below(400) as f64 / 4096.0;
-            let d = DVec3::new(grid(0.25), grid(0.5), grid(0.75));
-            ray(p - 4.0 * d, d)
-        });
-        packets.push((exact.collect(), 4.0));
-
+        let in_f32 =
+            |(o, d): (glam::DVec3, glam::DVec3)| (o.as_vec3().as_dvec3(), d.as_vec3().as_dvec3());
         let (mut shifted, mut borderline) = (0, 0);
-        for (rays, focus) in &packets {
+        for (rays, focus) in lens_packets(&mut random, in_f32) {
+            let rays: Vec<TriangleRay> = rays
+                .iter()
+                .map(|(o, d)| TriangleRay {
+                    origin: o.as_vec3().to_array(),
+                    direction: d.as_vec3().to_array(),
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                })
+                .collect();
             // SAFETY: the CPU has AVX2 (checked above).
-            let packet = unsafe { bounds_of(rays) }.expect("one octant, finite");
+            let packet = unsafe { bounds_of(&rays) }.expect("one octant, finite");
             shifted += usize::from(packet.shift != 0.0);
             for (i, ray) in rays.iter().enumerate().step_by(5) {
-                let (o, d) = (ray.origin.map(f64::from), ray.direction.map(f64::from));
-                let point = |t: f64| [0, 1, 2].map(|a| o[a] + t * d[a]);
                 let own = BoxRay::new(ray.origin, ray.direction, ray.tmin);
                 let horizon = Nearest::before(ray.tmax).horizon();
-                for t0 in [0.3, 0.7, 0.95, 1.0, 1.02, 1.3, 3.0].map(|f| f * focus) {
-                    for (leave, enter) in [(0, 1), (1, 2), (2, 0), (1, 0)] {
-                        let third = 3 - leave - enter;
-                        for ks in (-8..56).collect::<Vec<i32>>().chunks(WIDTH) {
-                            let mut node = Node {
-                                planes: [[[0f32; WIDTH]; 3]; 2],
-                                children: [0; WIDTH],
-                            };
-                            for (lane, &k) in ks.iter().enumerate() {
-                                let t1 = t0 * (1.0 + f64::from(k) * 2f64.powi(-24));
-                                // Inside each slab over these distances.
-                                let spans = [
-                                    (leave, 0.5 * t0, t0),
-                                    (enter, t1, 2.0 * t1),
-                                    (third, 0.5 * t0, 2.0 * t1),
-                                ];
-                                for (axis, from, to) in spans {
-                                    let (p, q) = (point(from)[axis], point(to)[axis]);
-                                    node.planes[0][axis][lane] = p.min(q) as f32;
-                                    node.planes[1][axis][lane] = p.max(q) as f32;
-                                }
-                            }
-                            let own_mask = intersect_node(&node, &own, horizon).0;
-                            // SAFETY: as above.
-                            let packet_mask = unsafe { packet_mask(&packet, &node) };
-                            for (lane, &k) in ks.iter().enumerate() {
-                                let admitted = own_mask >> lane & 1 == 1;
-                                borderline += usize::from(admitted && k > 0);
-                                assert!(
-                                    !admitted || packet_mask >> lane & 1 == 1,
-                                    "ray {i} of {:?}… enters the box it leaves slab {leave} of \
-                                     at {t0} and enters slab {enter} of {k} ulps later; its \
-                                     packet (shift {}) does not",
-                                    rays[0],
-                                    packet.shift
-                                );
-                            }
+                let as_f64 = |v: [f32; 3]| glam::Vec3::from(v).as_dvec3();
+                let edge = (as_f64(ray.origin), as_f64(ray.direction));
+                for boxes in edge_boxes(edge, focus, 2f64.powi(-24)) {
+                    let mut node = Node {
+                        planes: [[[f32::INFINITY; WIDTH]; 3], [[f32::NEG_INFINITY; WIDTH]; 3]],
+                        children: [0; WIDTH],
+                    };
+                    for (lane, (b, _)) in boxes.iter().enumerate() {
+                        for axis in 0..3 {
+                            node.planes[0][axis][lane] = b.min[axis] as f32;
+                            node.planes[1][axis][lane] = b.max[axis] as f32;
                         }
+                    }
+                    let own_mask = intersect_node(&node, &own, horizon).0;
+                    // SAFETY: as above.
+                    let packet_mask = unsafe { packet_mask(&packet, &node) };
+                    for (lane, &(_, k)) in boxes.iter().enumerate() {
+                        let admitted = own_mask >> lane & 1 == 1;
+                        borderline += usize::from(admitted && k > 0);
+                        assert!(
+                            !admitted || packet_mask >> lane & 1 == 1,
+                            "ray {i} of {:?}… enters box {:?} ({k} ulps past its exit); its \
+                             packet (shift {}) does not",
+                            rays[0],
+                            boxes[lane].0,
+                            packet.shift
+                        );
                     }
                 }
             }
