@@ -143,7 +143,8 @@ fn packets(c: &mut Criterion) {
         let name = format!("packets/spheres-10k-{size}");
         batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, None));
     }
-    // Sphere packets are bounded from the rays' origins, lens or not.
+    // Through a lens, sphere packets are bounded from where their rays meet, as triangle
+    // packets are.
     let rays = tiled_rays(eye, 1024, Some(0.3));
     batch_against_single(c, "packets/spheres-10k-1024-lens", &mut scene, &rays);
 }

@@ -883,9 +883,25 @@ fn the_avx2_sphere_tree_gives_the_same_hits_as_the_scalar_path() {
 }
 
 /// 8 × 8 tiles of camera rays from `eye` toward `target`, 64 rays per tile (as the
-/// renderer groups them), for a `size` × `size` image.
+/// renderer groups them), for a `size` × `size` image with a 90° field of view.
 fn tiled_camera_rays(eye: DVec3, target: DVec3, size: u32) -> Vec<Ray> {
-    let forward = (target - eye).normalize();
+    tiled_lens_rays(eye, target, size, 1.0, 0.0, &mut Numbers(0))
+}
+
+/// As [`tiled_camera_rays`], with the field's half-width scaled by `zoom` (its tangent),
+/// through a thin lens of radius `aperture` focused on `target`: each ray starts at a
+/// random point of the lens (a disk) and goes through the point its pixel's pinhole ray
+/// meets on the focus plane.
+fn tiled_lens_rays(
+    eye: DVec3,
+    target: DVec3,
+    size: u32,
+    zoom: f64,
+    aperture: f64,
+    numbers: &mut Numbers,
+) -> Vec<Ray> {
+    let focus = (target - eye).length();
+    let forward = (target - eye) / focus;
     let right = forward.cross(DVec3::Y).normalize();
     let up = right.cross(forward);
     let tiles = size / 8;
@@ -894,7 +910,16 @@ fn tiled_camera_rays(eye: DVec3, target: DVec3, size: u32) -> Vec<Ray> {
             let (tile, k) = (i / 64, i % 64);
             let (x, y) = (tile % tiles * 8 + k % 8, tile / tiles * 8 + k / 8);
             let [u, v, w] = crate::util::default_camera_direction(x, y, size, size);
-            ray(eye, eye + right * u + up * v + forward * w)
+            let pixel = (right * u + up * v) * zoom + forward * w;
+            if aperture == 0.0 {
+                return ray(eye, eye + pixel);
+            }
+            let (radius, angle) = (
+                numbers.range(0.0, 1.0).sqrt() * aperture,
+                numbers.range(0.0, std::f64::consts::TAU),
+            );
+            let origin = eye + (right * angle.cos() + up * angle.sin()) * radius;
+            ray(origin, eye + pixel * (focus / w))
         })
         .collect()
 }
@@ -928,6 +953,34 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
     ] {
         rays.extend(tiled_camera_rays(eye, target, size));
     }
+    // Tiles through thin lenses wider than a tile's footprint on the focus plane (so
+    // packets are bounded from where their rays meet): origins spread over the lens,
+    // meeting among the spheres, behind them, or close in front of the eye, so that the
+    // packets see boxes on both sides of that plane.
+    let lens_start = rays.len();
+    let mut lens = Numbers(37);
+    for (eye, target, size, zoom, aperture) in [
+        (DVec3::new(8.0, 12.0, 30.0), DVec3::ZERO, 64, 0.3, 2.0),
+        (
+            DVec3::new(8.0, 12.0, 30.0),
+            DVec3::new(-2.0, -3.0, -8.0),
+            32,
+            0.2,
+            3.0,
+        ),
+        (
+            DVec3::new(0.3, -0.2, 0.1),
+            DVec3::new(1.5, 0.1, -0.5),
+            32,
+            0.3,
+            0.2,
+        ),
+    ] {
+        rays.extend(tiled_lens_rays(
+            eye, target, size, zoom, aperture, &mut lens,
+        ));
+    }
+    let lens_end = rays.len();
     // Groups of rays with exactly zero components (infinite inverses) next to rays
     // without. The first: rays along +z, some starting on the last sphere's box planes
     // x = 0, x = 0.5, y = -0.75 (where `0 · ∞` is NaN in the group's bounds), the others
@@ -946,10 +999,12 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
     }
     let slant = DVec3::new(0.1, 0.0, 1.0).normalize();
     let probe = spheres.len() - 1;
-    let scene = Scene::build(&SceneGeometry {
+    let mut scene = Scene::build(&SceneGeometry {
         spheres: spheres.clone(),
         ..SceneGeometry::default()
     });
+    // Every group that can be a packet is one, wasteful or not.
+    scene.set_adaptive_packets(false);
     // The plane x = x0 the tightest box around the last sphere starts at (its box is
     // rounded outward from x = 0).
     let x0 = scene
@@ -996,6 +1051,15 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
         .filter(|g| scene.traces_as_packet(g))
         .count();
     assert!(packets * 4 > rays.len() / 64 * 3, "{packets} packets");
+    let lens_packets = rays[lens_start..lens_end]
+        .chunks(64)
+        .filter(|g| scene.traces_as_packet(g))
+        .count();
+    // (Tiles across an axis of the view mix direction signs, as above.)
+    assert!(
+        lens_packets * 2 > (lens_end - lens_start) / 64,
+        "{lens_packets} lens packets"
+    );
     assert!(scene.traces_as_packet(&rays[start..start + 64]));
     assert!(scene.traces_as_packet(&rays[start + 64..start + 128]));
 
