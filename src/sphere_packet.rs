@@ -7,12 +7,12 @@
 //! node is therefore skipped only if every ray's own robust test would skip it. Rays from
 //! different origins (through a thin lens) are bounded from where they come closest
 //! together instead, with both ends of the node test widened by what each ray's own test
-//! rounds ([`Ranges::shift_to_waist`], [`Ranges::enters`]). A leaf's
-//! box is then tested ray by ray, four rays per instruction, with exactly the single-ray
-//! test, and its spheres against the entering rays four at a time, with the operations of
-//! [`Sphere::intersect`] lane by lane (so the same bits). Each ray gets the hit its own
-//! traversal finds, except that of two spheres at the same `t` (to within
-//! rounding) which one is reported may differ, as the visiting order does.
+//! rounds (`Ranges::shift_to_waist`, `Ranges::enters`). A leaf's box is then tested ray
+//! by ray, four rays per instruction, with exactly the single-ray test, and its spheres
+//! against the entering rays four at a time, with the operations of [`Sphere::intersect`]
+//! lane by lane (so the same bits). Each ray gets the hit its own traversal finds, except
+//! that of two spheres at the same `t` (to within rounding) which one is reported may
+//! differ, as the visiting order does.
 
 use std::arch::x86_64::*;
 use std::mem::MaybeUninit;
