@@ -430,6 +430,21 @@ fn a_dangling_link_in_a_folder_is_a_failed_job_and_a_folder_named_json_is_no_job
 }
 
 #[test]
+fn a_stats_file_in_the_folder_being_rendered_is_not_a_manifest() {
+    // Rendered twice: the second run finds the first's stats file in the folder, under
+    // another name for the same file.
+    let dir = Dir::new();
+    dir.write("jobs/good.json", format!("{{{IMAGE}}}"));
+    for stats in ["jobs/stats.json", "jobs/../jobs/stats.json"] {
+        let run = dir.raybatch(&["render", "jobs", "--stats", stats]);
+        assert_eq!(run.status, 0, "{}", run.stderr);
+        let text = String::from_utf8(dir.read("jobs/stats.json")).unwrap();
+        assert_eq!(text.lines().count(), 1, "{text}");
+        assert!(text.contains("good.json"), "{text}");
+    }
+}
+
+#[test]
 fn exit_statuses_are_0_1_and_2() {
     let dir = Dir::new();
     dir.write("good.json", format!("{{{IMAGE}}}"));

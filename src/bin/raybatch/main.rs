@@ -6,7 +6,7 @@ mod args;
 mod memory;
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, bail};
@@ -54,6 +54,9 @@ fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create the output folder {}", dir.display()))?;
     }
+    // Listed before the stats file is created, and without it: a stats file named
+    // `*.json` in a folder being rendered is not a manifest.
+    let (jobs, mut failures) = collect_manifests(&args.paths, args.stats.as_deref());
     let mut stats = match &args.stats {
         Some(path) => Some(std::io::BufWriter::new(
             std::fs::File::create(path)
@@ -62,7 +65,6 @@ fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
         None => None,
     };
 
-    let (jobs, mut failures) = collect_manifests(&args.paths);
     let bar = progress_bar(args.quiet);
     let mut batch = Batch::new(JobOptions {
         out_dir: args.out.clone(),
@@ -196,7 +198,7 @@ fn verify(args: VerifyArgs) -> anyhow::Result<ExitCode> {
         max_depth_error: args.max_depth_error,
         ..Limits::default()
     };
-    let (jobs, mut failures) = collect_manifests(&args.paths);
+    let (jobs, mut failures) = collect_manifests(&args.paths, None);
     let mut meshes = raybatch::mesh::MeshCache::new();
     for manifest in &jobs {
         match raybatch::verify::verify(manifest, &mut meshes) {
@@ -293,12 +295,20 @@ fn stress(args: StressArgs) -> anyhow::Result<ExitCode> {
     })
 }
 
-/// The manifests named by the command line (folders expanded, duplicates dropped), and how
-/// many paths could not be read (each reported on stderr).
-fn collect_manifests(paths: &[PathBuf]) -> (Vec<PathBuf>, usize) {
+/// The manifests named by the command line (folders expanded, duplicates dropped, the
+/// `stats` file left out of folders), and how many paths could not be read (each reported
+/// on stderr).
+fn collect_manifests(paths: &[PathBuf], stats: Option<&Path>) -> (Vec<PathBuf>, usize) {
     let (mut jobs, mut failures) = (Vec::new(), 0);
+    let stats = stats.and_then(absolute_file);
     for path in paths {
-        match manifests_in(path) {
+        let listed = manifests_in(path).map(|mut found| {
+            if path.is_dir() && stats.is_some() {
+                found.retain(|manifest| absolute_file(manifest) != stats);
+            }
+            found
+        });
+        match listed {
             Ok(found) if found.is_empty() => {
                 eprintln!(
                     "raybatch: {}: no *.json manifests in this folder",
@@ -324,6 +334,16 @@ fn collect_manifests(paths: &[PathBuf]) -> (Vec<PathBuf>, usize) {
         }
     }
     (jobs, failures)
+}
+
+/// `path` made absolute through its folder's real path (the file itself need not exist),
+/// so that two names of one file compare equal; `None` if the folder cannot be resolved.
+fn absolute_file(path: &Path) -> Option<PathBuf> {
+    let folder = match path.parent() {
+        Some(parent) if !parent.as_os_str().is_empty() => parent,
+        _ => Path::new("."),
+    };
+    Some(folder.canonicalize().ok()?.join(path.file_name()?))
 }
 
 /// Starts the worker threads that every parallel part of a job runs on (`threads` of
