@@ -1,6 +1,7 @@
 //! Trace throughput on procedural scenes (no downloads): closest-hit and any-hit camera
 //! rays through a torus mesh; and, in the `packets` groups, batches of 64 neighbouring
-//! camera rays (`Scene::closest_hits`) paced, always as packets, and ray by ray, on an
+//! camera rays (`Scene::closest_hits`) paced, always as packets, always side by side (single
+//! rays traced in turns), and ray by ray, on an
 //! 82k-triangle icosphere and a 10,000-sphere field at a low and a high resolution, and
 //! at the high one through a thin lens.
 //!
@@ -13,6 +14,7 @@ use raybatch::camera::{Camera, ThinLens, look_at_frame};
 use raybatch::manifest::{CameraDesc, SamplerDesc, SamplerKind};
 use raybatch::mesh::{Geometry, Instance, MeshFile};
 use raybatch::sampler::Sampler;
+use raybatch::scene::Grouping;
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry, procedural};
 use std::sync::Arc;
 
@@ -94,15 +96,19 @@ fn tiled_rays(eye: DVec3, size: u32, lens: Option<f64>) -> Vec<Ray> {
         .collect()
 }
 
-/// `closest_hits` in groups of 64 (paced, then always as packets) against `closest_hit`
-/// ray by ray.
+/// `closest_hits` in groups of 64 (paced, always as packets, always side by side) against
+/// `closest_hit` ray by ray.
 fn batch_against_single(c: &mut Criterion, name: &str, scene: &mut Scene, rays: &[Ray]) {
     let mut out = vec![None; rays.len()];
     let mut group = c.benchmark_group(name);
     group.throughput(Throughput::Elements(rays.len() as u64));
     group.sample_size(20);
-    for (label, adaptive) in [("batch-paced", true), ("batch-always-packets", false)] {
-        scene.set_adaptive_packets(adaptive);
+    for (label, grouping) in [
+        ("batch-paced", Grouping::Paced),
+        ("batch-always-packets", Grouping::Packets),
+        ("batch-side-by-side", Grouping::SideBySide),
+    ] {
+        scene.set_grouping(grouping);
         group.bench_function(label, |b| {
             b.iter(|| {
                 for (rays, out) in rays.chunks(64).zip(out.chunks_mut(64)) {
@@ -111,7 +117,7 @@ fn batch_against_single(c: &mut Criterion, name: &str, scene: &mut Scene, rays: 
             })
         });
     }
-    scene.set_adaptive_packets(true);
+    scene.set_grouping(Grouping::Paced);
     group.bench_function("single", |b| {
         b.iter(|| {
             rays.iter()

@@ -36,6 +36,8 @@ pub mod gltf_mesh;
 pub mod hint;
 pub mod image;
 pub mod integrator;
+#[cfg(target_arch = "x86_64")]
+pub mod interleaved;
 pub mod job;
 pub mod manifest;
 pub mod mesh;

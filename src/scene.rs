@@ -293,9 +293,8 @@ pub struct Scene {
     /// Whether triangle packets test leaves sixteen rays at a time (AVX-512) rather than
     /// eight ([`crate::packet::LeafLanes`]).
     wide_leaves: bool,
-    /// Whether packets through a tree are skipped for a while after a wasteful one
-    /// ([`crate::packet::worth_trying`]); off, every eligible group is a packet.
-    adaptive_packets: bool,
+    /// How the batch queries trace groups of coherent rays.
+    grouping: Grouping,
     counts: SceneCounts,
 }
 
@@ -348,7 +347,7 @@ impl Scene {
             spheres_by_id: spheres.clone(),
             simd: simd_available() && triangles.fits_simd_stack(),
             sphere_packets: simd_available() && sphere_bvh.stack_bound() <= SIMD_STACK,
-            adaptive_packets: true,
+            grouping: Grouping::default(),
             avx2: simd_available(),
             wide_leaves: wide_leaves_available(),
             sphere_bvh,
@@ -412,17 +411,16 @@ impl Scene {
         self.sphere_packets
     }
 
-    /// With `false`, every group of rays that can be a packet is one, through the triangles
-    /// and the spheres, even after wasteful packets (for tests and benches of the packet
-    /// paths; the hits are the same either way).
-    pub fn set_adaptive_packets(&mut self, on: bool) {
-        self.adaptive_packets = on;
+    /// How the batch queries trace groups of coherent rays ([`Grouping::Paced`] unless
+    /// set; the others are for tests and benches). The hits are the same either way.
+    pub fn set_grouping(&mut self, grouping: Grouping) {
+        self.grouping = grouping;
     }
 
     /// Traces a group of rays as a packet through `tree` when `enabled` (the CPU and tree
     /// allow it) and the pacing does not hold packets back: `trace` runs the packet and
-    /// returns what it visited, or `None` when the rays cannot be one. Returns whether
-    /// the group was traced; if not, the caller traces it ray by ray.
+    /// returns what it visited, or `None` when the rays cannot be one. Says how the caller
+    /// is to trace the group if it was not traced.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     fn traced_as_packet(
@@ -430,15 +428,20 @@ impl Scene {
         tree: PacedTree,
         enabled: bool,
         trace: impl FnOnce() -> Option<crate::packet::Visits>,
-    ) -> bool {
-        if !enabled || (self.adaptive_packets && !crate::packet::worth_trying(tree)) {
-            return false;
+    ) -> GroupTrace {
+        if !enabled {
+            return GroupTrace::OneByOne;
+        }
+        match self.grouping {
+            Grouping::Packets => {}
+            Grouping::Paced if crate::packet::worth_trying(tree) => {}
+            Grouping::Paced | Grouping::SideBySide => return GroupTrace::SideBySide,
         }
         let Some(visits) = trace() else {
-            return false;
+            return GroupTrace::OneByOne;
         };
         crate::packet::record(tree, visits);
-        true
+        GroupTrace::Packet
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -535,7 +538,8 @@ impl Scene {
                 tmax,
                 |k, t, position| out[k] = Some(self.sphere_hit(t, position)),
             )
-        }) {
+        }) == GroupTrace::Packet
+        {
             return;
         }
         for (k, ray) in rays.iter().enumerate() {
@@ -576,7 +580,9 @@ impl Scene {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
             // `wide_leaves` only when it has AVX-512F too.
-            if self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
+            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
+            // `wide_leaves` only when it has AVX-512F too.
+            match self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
                 crate::packet::closest(
                     self.leaf_lanes(),
                     &self.triangles.bvh,
@@ -585,7 +591,20 @@ impl Scene {
                     |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
                 )
             }) {
-                continue;
+                GroupTrace::Packet => continue,
+                GroupTrace::SideBySide => {
+                    // SAFETY: as above; only AVX2 is held back by the pacing.
+                    unsafe {
+                        crate::interleaved::closest(
+                            &self.triangles.bvh,
+                            &self.triangles.blocks,
+                            prepared,
+                            |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
+                        )
+                    };
+                    continue;
+                }
+                GroupTrace::OneByOne => {}
             }
             for (k, ray) in rays.iter().enumerate() {
                 let tmax = out[k].map_or(ray.tmax, |h| h.t);
@@ -634,31 +653,45 @@ impl Scene {
                 let n = rays.len();
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
                 // `wide_leaves` only when it has AVX-512F too.
-                let traced = self.traced_as_packet(PacedTree::Triangles, self.simd, || {
-                    // A ray already hit needs no triangle: an empty interval.
-                    let prepared =
-                        triangle_rays(
-                            rays,
-                            |k, ray| {
-                                if out[k] { f64::NEG_INFINITY } else { ray.tmax }
-                            },
-                        );
-                    // SAFETY: as above.
-                    unsafe {
-                        crate::packet::any(
-                            self.leaf_lanes(),
-                            &self.triangles.bvh,
-                            &self.triangles.blocks,
-                            &prepared[..n],
-                            &mut triangles[..n],
-                        )
+                // A ray already hit needs no triangle: an empty interval.
+                let prepared = || {
+                    triangle_rays(
+                        rays,
+                        |k, ray| {
+                            if out[k] { f64::NEG_INFINITY } else { ray.tmax }
+                        },
+                    )
+                };
+                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
+                // `wide_leaves` only when it has AVX-512F too.
+                match self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
+                    crate::packet::any(
+                        self.leaf_lanes(),
+                        &self.triangles.bvh,
+                        &self.triangles.blocks,
+                        &prepared()[..n],
+                        &mut triangles[..n],
+                    )
+                }) {
+                    GroupTrace::Packet => {
+                        for (out, hit) in out.iter_mut().zip(triangles) {
+                            *out |= hit;
+                        }
+                        continue;
                     }
-                });
-                if traced {
-                    for (out, hit) in out.iter_mut().zip(triangles) {
-                        *out |= hit;
+                    GroupTrace::SideBySide => {
+                        // SAFETY: as above; only AVX2 is held back by the pacing.
+                        unsafe {
+                            crate::interleaved::any(
+                                &self.triangles.bvh,
+                                &self.triangles.blocks,
+                                &prepared()[..n],
+                                out,
+                            )
+                        };
+                        continue;
                     }
-                    continue;
+                    GroupTrace::OneByOne => {}
                 }
             }
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
@@ -790,7 +823,8 @@ impl Scene {
                     |k, _, _| out[k] = true,
                 )
             }
-        }) {
+        }) == GroupTrace::Packet
+        {
             return;
         }
         for (ray, out) in rays.iter().zip(out.iter_mut()) {
@@ -1002,6 +1036,38 @@ pub struct TriangleRay {
     pub direction: [f32; 3],
     pub tmin: f32,
     pub tmax: f32,
+}
+
+/// How the batch queries ([`Scene::closest_hits`], [`Scene::any_hits`]) trace groups of
+/// coherent rays. The hits are the same in every case; only the speed changes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Grouping {
+    /// As packets where the CPU and the rays allow, until packets prove wasteful (the rays
+    /// share few nodes, [`crate::packet::Visits`]); then, for a while, the rays through
+    /// the triangles side by side ([`crate::interleaved`]) and through the spheres one by
+    /// one.
+    #[default]
+    Paced,
+    /// Every group that can be a packet is one, even after wasteful packets.
+    Packets,
+    /// No packets: the rays through the triangles side by side, through the spheres one
+    /// by one.
+    SideBySide,
+}
+
+/// How [`Scene::traced_as_packet`] left a group of rays.
+#[cfg(target_arch = "x86_64")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum GroupTrace {
+    /// Traced as a packet.
+    Packet,
+    /// Not traced: the pacing holds packets back, as the last ones were wasteful (the
+    /// rays share few nodes). The caller traces the rays side by side
+    /// ([`crate::interleaved`]), which keeps several waits for memory going at once.
+    SideBySide,
+    /// Not traced: the CPU, the tree or the rays do not allow a packet. The caller
+    /// traces the rays one by one.
+    OneByOne,
 }
 
 /// Whether the ray's origin and direction are finite; others meet no sphere. The sphere

@@ -26,7 +26,7 @@ pub fn available() -> bool {
 }
 
 /// A ray's constants, broadcast once.
-struct Lanes {
+pub(crate) struct Lanes {
     origin: [__m256; 3],
     inv_dir: [__m256; 3],
     inv_dir_far: [__m256; 3],
@@ -34,9 +34,9 @@ struct Lanes {
     near: &'static [usize; 3],
     far: &'static [usize; 3],
     tmin8: __m256,
-    tri: TriLanes<__m128>,
+    pub(crate) tri: TriLanes<__m128>,
     /// `tri` in eight lanes, for two blocks at once ([`block_pair_test`]).
-    tri8: TriLanes<__m256>,
+    pub(crate) tri8: TriLanes<__m256>,
 }
 
 /// Rays' constants for the watertight test: one ray in every lane (`__m128`, a ray against
@@ -258,7 +258,7 @@ static AXIS_ORDER: [[i32; 4]; 8] = {
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn inverse([dx, dy, dz]: [f32; 3]) -> __m128 {
+pub(crate) unsafe fn inverse([dx, dy, dz]: [f32; 3]) -> __m128 {
     // SAFETY: AVX2 is enabled in the caller.
     unsafe { _mm_div_ps(_mm_set1_ps(1.0), _mm_setr_ps(dx, dy, dz, 1.0)) }
 }
@@ -273,7 +273,12 @@ unsafe fn inverse([dx, dy, dz]: [f32; 3]) -> __m128 {
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn enters(bounds: &Bounds<f32>, ray: &TriangleRay, inv: __m128, tmax: f32) -> bool {
+pub(crate) unsafe fn enters(
+    bounds: &Bounds<f32>,
+    ray: &TriangleRay,
+    inv: __m128,
+    tmax: f32,
+) -> bool {
     let ([ox, oy, oz], [dx, dy, dz]) = (ray.origin, ray.direction);
     let (lo, hi) = (bounds.min, bounds.max);
     // SAFETY: AVX2 is enabled in the caller.
@@ -379,7 +384,10 @@ unsafe fn interval_f32(tmin: f64, tmax: f64) -> [f32; 2] {
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn triangle_lanes(ray: &TriangleRay, constants: &RayConstants) -> TriLanes<__m128> {
+pub(crate) unsafe fn triangle_lanes(
+    ray: &TriangleRay,
+    constants: &RayConstants,
+) -> TriLanes<__m128> {
     let [kx, ky, kz] = constants.k;
     let shear = constants.shear;
     // SAFETY: AVX2 is enabled in the caller.
@@ -403,7 +411,11 @@ unsafe fn triangle_lanes(ray: &TriangleRay, constants: &RayConstants) -> TriLane
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn lanes(ray: &TriangleRay, constants: &RayConstants, tri: TriLanes<__m128>) -> Lanes {
+pub(crate) unsafe fn lanes(
+    ray: &TriangleRay,
+    constants: &RayConstants,
+    tri: TriLanes<__m128>,
+) -> Lanes {
     let RayConstants { inv, inv_far, .. } = *constants;
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
@@ -478,7 +490,7 @@ pub(crate) use slab_test;
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
-unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) {
+pub(crate) unsafe fn node_test(node: &Node<f32>, r: &Lanes, tmax: __m256) -> (u32, __m256) {
     let planes = node.planes.as_ptr().cast::<f32>();
     // SAFETY: the offsets are below 6 × 8 floats, and nodes are 64-byte aligned so every
     // 8-float plane starts on a 32-byte boundary; AVX2 is enabled in the caller.

@@ -9,7 +9,7 @@ use raybatch::bvh::{BuildPreset, Bvh};
 use raybatch::collapse::LeafCost;
 use raybatch::mesh::{Geometry, Instance, MeshFile};
 use raybatch::procedural;
-use raybatch::scene::Tracer;
+use raybatch::scene::{Grouping, Tracer};
 use raybatch::sphere::Sphere;
 use raybatch::triangle::{self, ShearedRay};
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry};
@@ -536,7 +536,7 @@ fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
         // are then exactly its own), and parallel rays toward up to 64 targets each,
         // ending at them or not.
         scene.set_simd(true);
-        scene.set_adaptive_packets(false);
+        scene.set_grouping(Grouping::Packets);
         for (r, expected) in rays.iter().zip(&truth) {
             assert!(!scene.uses_simd() || scene.traces_as_packet(std::slice::from_ref(r)));
             let (closest, any) = batch_queries(&scene, std::slice::from_ref(r));
@@ -767,7 +767,7 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
             );
             assert!(scene.uses_simd());
             // Every group that can be a packet is one, wasteful or not.
-            scene.set_adaptive_packets(false);
+            scene.set_grouping(Grouping::Packets);
             let fast: Vec<_> = rays
                 .iter()
                 .map(|r| (scene.closest_hit(r), scene.any_hit(r)))
@@ -784,8 +784,17 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
             let lens_groups = rays[lens_start..lens_end].chunks(64);
             let lens_packets = lens_groups.filter(|g| scene.traces_as_packet(g)).count();
             assert!(lens_packets >= 56, "{lens_packets} lens packets of 64");
-            for wide in [false, true] {
+            // Then every group as single rays traced side by side, as the pacing has them
+            // after wasteful packets: four searches in turns, each slot taking the next ray
+            // as its search ends, among rays that miss the tree's box or are stopped by the
+            // block that stopped the slot's last ray.
+            for (wide, grouping) in [
+                (false, Grouping::Packets),
+                (true, Grouping::Packets),
+                (false, Grouping::SideBySide),
+            ] {
                 scene.set_wide_leaves(wide);
+                scene.set_grouping(grouping);
                 if wide && !scene.uses_wide_leaves() {
                     eprintln!("this CPU has no AVX-512: sixteen-lane packets do not run here");
                     continue;
@@ -795,7 +804,7 @@ fn the_avx2_kernels_and_packets_give_bit_identical_hits_to_the_scalar_path() {
                     assert_eq!(
                         (c, a),
                         (&f.0, &f.1),
-                        "{preset:?}, wide leaves {wide}: batch ray {i}: {:?}",
+                        "{preset:?}, wide leaves {wide}, {grouping:?}: batch ray {i}: {:?}",
                         rays[i]
                     );
                 }
@@ -1004,7 +1013,7 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
         ..SceneGeometry::default()
     });
     // Every group that can be a packet is one, wasteful or not.
-    scene.set_adaptive_packets(false);
+    scene.set_grouping(Grouping::Packets);
     // The plane x = x0 the tightest box around the last sphere starts at (its box is
     // rounded outward from x = 0).
     let x0 = scene
@@ -1126,7 +1135,7 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
         .collect();
     for geometry in [&only_spheres, &with_mesh, &both] {
         let mut scene = Scene::build(geometry);
-        scene.set_adaptive_packets(false);
+        scene.set_grouping(Grouping::Packets);
         assert!(!has_avx2() || scene.traces_as_packet(&good));
         for (case, spoil) in [
             (
@@ -1283,7 +1292,7 @@ fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
         point: DVec3::new(0.0, -0.9, 0.0),
         normal: DVec3::Y,
     }];
-    let scene = Scene::build(&geometry);
+    let mut scene = Scene::build(&geometry);
     let eye = DVec3::new(0.2, 0.4, -4.0);
     let rays: Vec<Ray> = (0..64 * 64)
         .map(|i| {
@@ -1293,20 +1302,25 @@ fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
             ray(eye, eye + DVec3::from_array(d))
         })
         .collect();
-    let (closest, any) = batch_queries(&scene, &rays);
-    let mut kinds = [0; 3];
-    for (i, r) in rays.iter().enumerate() {
-        assert_eq!(closest[i], scene.closest_hit(r), "ray {i}");
-        assert_eq!(any[i], scene.any_hit(r), "ray {i}");
-        if let Some(hit) = closest[i] {
-            kinds[match hit.primitive {
-                raybatch::scene::Primitive::Plane(_) => 0,
-                raybatch::scene::Primitive::Sphere(_) => 1,
-                raybatch::scene::Primitive::Triangle { .. } => 2,
-            }] += 1;
+    // Packets, and rays side by side through the triangles (as after wasteful packets),
+    // which start no search for a ray already stopped nearer.
+    for grouping in [Grouping::Paced, Grouping::SideBySide] {
+        scene.set_grouping(grouping);
+        let (closest, any) = batch_queries(&scene, &rays);
+        let mut kinds = [0; 3];
+        for (i, r) in rays.iter().enumerate() {
+            assert_eq!(closest[i], scene.closest_hit(r), "{grouping:?}: ray {i}");
+            assert_eq!(any[i], scene.any_hit(r), "{grouping:?}: ray {i}");
+            if let Some(hit) = closest[i] {
+                kinds[match hit.primitive {
+                    raybatch::scene::Primitive::Plane(_) => 0,
+                    raybatch::scene::Primitive::Sphere(_) => 1,
+                    raybatch::scene::Primitive::Triangle { .. } => 2,
+                }] += 1;
+            }
         }
+        assert!(kinds.iter().all(|&k| k > 50), "hits per kind: {kinds:?}");
     }
-    assert!(kinds.iter().all(|&k| k > 50), "hits per kind: {kinds:?}");
 }
 
 #[test]
@@ -1315,7 +1329,7 @@ fn batch_queries_over_a_mesh_keep_each_rays_own_interval() {
     // for a run of rays; rays whose intervals change within a batch, in runs and one by
     // one, must each keep their own: the front face, the back face past a `tmin`, or
     // nothing before a `tmax`.
-    let scene = Scene::build(&placed(&procedural::icosphere(3), DMat4::IDENTITY));
+    let mut scene = Scene::build(&placed(&procedural::icosphere(3), DMat4::IDENTITY));
     let eye = DVec3::new(0.2, 0.4, -4.0);
     let intervals = [
         (0.0, f64::INFINITY),
@@ -1340,19 +1354,56 @@ fn batch_queries_over_a_mesh_keep_each_rays_own_interval() {
             }
         })
         .collect();
-    let (closest, any) = batch_queries(&scene, &rays);
-    let (mut front, mut back) = (0, 0);
-    for (i, r) in rays.iter().enumerate() {
-        assert_eq!(closest[i], scene.closest_hit(r), "ray {i}");
-        assert_eq!(any[i], scene.any_hit(r), "ray {i}");
-        match closest[i] {
-            Some(hit) if hit.t < 3.9 => front += 1,
-            Some(_) => back += 1,
-            None => {}
+    for grouping in [Grouping::Paced, Grouping::SideBySide] {
+        scene.set_grouping(grouping);
+        let (closest, any) = batch_queries(&scene, &rays);
+        let (mut front, mut back) = (0, 0);
+        for (i, r) in rays.iter().enumerate() {
+            assert_eq!(closest[i], scene.closest_hit(r), "{grouping:?}: ray {i}");
+            assert_eq!(any[i], scene.any_hit(r), "{grouping:?}: ray {i}");
+            match closest[i] {
+                Some(hit) if hit.t < 3.9 => front += 1,
+                Some(_) => back += 1,
+                None => {}
+            }
         }
+        // Both faces are found, so the intervals decided the answers.
+        assert!(front > 30 && back > 30, "front {front}, back {back}");
     }
-    // Both faces are found, so the intervals decided the answers.
-    assert!(front > 30 && back > 30, "front {front}, back {back}");
+}
+
+#[test]
+fn rays_side_by_side_keep_their_own_intervals_when_a_slots_last_block_is_tested_first() {
+    // Traced side by side, each slot of the rays in flight first tests the block that
+    // stopped its last ray. Rays along one line through the unit icosphere (faces within
+    // 0.01 of the unit sphere), whose front face lies at 3.02–3.03 and back face at
+    // 5.01–5.03: after a ray that hits, the next ones in the slot end before the front
+    // face or start past it and end before the back face, and must not be stopped by the
+    // block that stopped it.
+    if !has_avx2() {
+        return;
+    }
+    let mut scene = Scene::build(&placed(&procedural::icosphere(3), DMat4::IDENTITY));
+    scene.set_grouping(Grouping::SideBySide);
+    let eye = DVec3::new(0.2, 0.4, -4.0);
+    let intervals = [(0.0, f64::INFINITY), (0.0, 2.9), (3.1, 4.9), (4.95, 5.1)];
+    let rays: Vec<Ray> = (0..256)
+        .map(|k| {
+            let (tmin, tmax) = intervals[k % intervals.len()];
+            Ray {
+                tmin,
+                tmax,
+                ..ray(eye, DVec3::ZERO)
+            }
+        })
+        .collect();
+    let (closest, any) = batch_queries(&scene, &rays);
+    for (k, r) in rays.iter().enumerate() {
+        let expected = matches!(k % intervals.len(), 0 | 3);
+        assert_eq!(any[k], expected, "ray {k}: {r:?}");
+        assert_eq!(closest[k].is_some(), expected, "ray {k}: {r:?}");
+        assert_eq!(closest[k], scene.closest_hit(r), "ray {k}");
+    }
 }
 
 #[test]
