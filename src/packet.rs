@@ -141,6 +141,8 @@ pub struct Visits {
     pub leaves: u32,
     /// Rays entering their boxes, summed over those leaves.
     pub entries: u32,
+    /// Leaves some ray entered.
+    pub entered: u32,
 }
 
 impl Visits {
@@ -158,6 +160,18 @@ impl Visits {
     pub fn wasteful(self) -> bool {
         self.leaves >= Self::JUDGED_FROM && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
     }
+
+    /// Whether hardly any leaf was entered by more than one ray (at most 1/16 more rays
+    /// than leaves entered): the rays share few nodes, and traced one by one, each ray's
+    /// search would be a chain of cache misses of its own. So a wasteful packet over a
+    /// mesh finer than the pixels (the bench's torus at 320x180: one ray per entered
+    /// leaf). Over the full-HD torus and through the bench's lens, where packets are
+    /// wasteful because their bounds are wide, neighbouring rays share leaves (three rays
+    /// per entered leaf on average); with a bound of one and a half, or one and a
+    /// quarter, rays per leaf, the lens row's batches traced 7–10% slower than one by one.
+    pub fn scattered(self) -> bool {
+        16 * self.entries <= 17 * self.entered
+    }
 }
 
 /// A tree that packets cross, each with its own pacing: a thread's sphere packets may
@@ -169,10 +183,8 @@ pub enum PacedTree {
 }
 
 thread_local! {
-    /// This thread's pacing of packets per [`PacedTree`]: groups of rays still to trace
-    /// one by one, and how many the next wasteful packet sends one by one.
-    static PACING: [Cell<(u32, u32)>; 2] =
-        const { [Cell::new((0, SINGLE_AFTER_WASTE)), Cell::new((0, SINGLE_AFTER_WASTE))] };
+    /// This thread's pacing of packets per [`PacedTree`].
+    static PACING: [Cell<Pacing>; 2] = const { [Cell::new(Pacing::FRESH), Cell::new(Pacing::FRESH)] };
 }
 
 /// Groups of rays traced one by one after a wasteful packet before a packet is tried
@@ -189,26 +201,59 @@ pub const MOST_SINGLE_AFTER_WASTE: u32 = 128;
 pub fn worth_trying(tree: PacedTree) -> bool {
     PACING.with(|pacing| {
         let pacing = &pacing[tree as usize];
-        let (left, next) = pacing.get();
-        pacing.set((left.saturating_sub(1), next));
-        left == 0
+        let state = pacing.get();
+        pacing.set(Pacing {
+            left: state.left.saturating_sub(1),
+            ..state
+        });
+        state.left == 0
     })
 }
 
-/// Records what a packet through `tree` visited, for [`worth_trying`].
+/// Whether the wasteful packet that began this thread's spell of groups traced one by
+/// one through `tree` found its rays [`scattered`](Visits::scattered): then they are
+/// better traced side by side ([`crate::interleaved`]) than one after the other.
+pub fn scattered(tree: PacedTree) -> bool {
+    PACING.with(|pacing| pacing[tree as usize].get().scattered)
+}
+
+/// Records what a packet through `tree` visited, for [`worth_trying`] and [`scattered`].
 pub fn record(tree: PacedTree, visits: Visits) {
     if visits.leaves < Visits::JUDGED_FROM {
         return;
     }
     PACING.with(|pacing| {
         let pacing = &pacing[tree as usize];
-        let (_, next) = pacing.get();
+        let next = pacing.get().next;
         pacing.set(if visits.wasteful() {
-            (next, (2 * next).min(MOST_SINGLE_AFTER_WASTE))
+            Pacing {
+                left: next,
+                next: (2 * next).min(MOST_SINGLE_AFTER_WASTE),
+                scattered: visits.scattered(),
+            }
         } else {
-            (0, SINGLE_AFTER_WASTE)
+            Pacing::FRESH
         });
     });
+}
+
+/// A thread's pacing of packets through one tree.
+#[derive(Debug, Clone, Copy)]
+struct Pacing {
+    /// Groups of rays still to trace one by one.
+    left: u32,
+    /// How many the next wasteful packet sends one by one.
+    next: u32,
+    /// Whether the last wasteful packet found its rays scattered.
+    scattered: bool,
+}
+
+impl Pacing {
+    const FRESH: Pacing = Pacing {
+        left: 0,
+        next: SINGLE_AFTER_WASTE,
+        scattered: false,
+    };
 }
 
 /// One ray per lane, eight rays per row; two rows fill a 64-byte AVX-512 register.
@@ -485,6 +530,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             visits.leaves += 1;
+            let entries_before = visits.entries;
 
             // Each of the leaf's triangles against the rays `8 · $row + i` of `$hits` at
             // once, by `$test` over the rays' constants in `$row_lanes` (which share the
@@ -688,6 +734,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     row_triangles!(r, hits);
                 }
             }
+            visits.entered += u32::from(visits.entries > entries_before);
             if improved {
                 // The largest horizon: `t_box` holds each live ray's, −∞ elsewhere.
                 // SAFETY: rows are 32-byte aligned arrays of eight floats.
@@ -1079,14 +1126,17 @@ mod tests {
         let wasteful = Visits {
             leaves: 40,
             entries: 40 / Visits::MOST_LEAVES_PER_ENTRY - 1,
+            entered: 20,
         };
         let useful = Visits {
             leaves: 40,
             entries: 40 / Visits::MOST_LEAVES_PER_ENTRY,
+            entered: 20,
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
+            entered: 0,
         };
         assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
         // Each test runs on its own thread: the pacing starts fresh.
@@ -1116,6 +1166,37 @@ mod tests {
             record(tree, unjudged);
             assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
         }
+    }
+
+    #[test]
+    fn a_spell_goes_side_by_side_when_its_wasteful_packet_found_the_rays_scattered() {
+        // 34 entries over 32 entered leaves is 1/16 more: scattered; one more entry is not.
+        let visits = |entries| Visits {
+            leaves: 200,
+            entries,
+            entered: 32,
+        };
+        let (scattered, shared) = (visits(34), visits(35));
+        assert!(scattered.wasteful() && shared.wasteful());
+        assert!(scattered.scattered() && !shared.scattered());
+        // Each test runs on its own thread: the pacing starts fresh.
+        let tree = PacedTree::Triangles;
+        assert!(!super::scattered(tree));
+        record(tree, scattered);
+        assert!(!worth_trying(tree) && super::scattered(tree));
+        record(tree, shared);
+        assert!(!worth_trying(tree) && !super::scattered(tree));
+        record(tree, scattered);
+        // A useful packet ends the spell and forgets it.
+        record(
+            tree,
+            Visits {
+                entries: 400,
+                ..scattered
+            },
+        );
+        assert!(worth_trying(tree) && !super::scattered(tree));
+        assert!(!super::scattered(PacedTree::Spheres));
     }
 
     /// The packet's node test of the eight boxes of `node`, in the frame it was bounded

@@ -435,6 +435,7 @@ impl Scene {
         match self.grouping {
             Grouping::Packets => {}
             Grouping::Paced if crate::packet::worth_trying(tree) => {}
+            Grouping::Paced if !crate::packet::scattered(tree) => return GroupTrace::OneByOne,
             Grouping::Paced | Grouping::SideBySide => return GroupTrace::SideBySide,
         }
         let Some(visits) = trace() else {
@@ -1042,10 +1043,10 @@ pub struct TriangleRay {
 /// coherent rays. The hits are the same in every case; only the speed changes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Grouping {
-    /// As packets where the CPU and the rays allow, until packets prove wasteful (the rays
-    /// share few nodes, [`crate::packet::Visits`]); then, for a while, the rays through
-    /// the triangles side by side ([`crate::interleaved`]) and through the spheres one by
-    /// one.
+    /// As packets where the CPU and the rays allow, until packets prove wasteful
+    /// ([`crate::packet::Visits`]); then, for a while, one by one, or through the
+    /// triangles side by side ([`crate::interleaved`]) where the wasteful packet found
+    /// its rays scattered, each in leaves of its own.
     #[default]
     Paced,
     /// Every group that can be a packet is one, even after wasteful packets.
@@ -1061,12 +1062,13 @@ pub enum Grouping {
 enum GroupTrace {
     /// Traced as a packet.
     Packet,
-    /// Not traced: the pacing holds packets back, as the last ones were wasteful (the
-    /// rays share few nodes). The caller traces the rays side by side
-    /// ([`crate::interleaved`]), which keeps several waits for memory going at once.
+    /// Not traced: the pacing holds packets back, and the last wasteful packet found its
+    /// rays scattered. The caller traces the rays side by side ([`crate::interleaved`]),
+    /// which keeps several waits for memory going at once.
     SideBySide,
-    /// Not traced: the CPU, the tree or the rays do not allow a packet. The caller
-    /// traces the rays one by one.
+    /// Not traced: the CPU, the tree or the rays do not allow a packet, or the pacing
+    /// holds packets back over rays that share leaves. The caller traces the rays one by
+    /// one, each finding the last one's nodes in the cache.
     OneByOne,
 }
 

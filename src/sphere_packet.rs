@@ -586,6 +586,7 @@ unsafe fn trace<const ANY: bool>(
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             visits.leaves += 1;
+            let entries_before = visits.entries;
             for g in 0..GROUPS {
                 // SAFETY: AVX2 is enabled in this function.
                 let lane = |groups: &Groups| unsafe { groups.load(g) };
@@ -648,6 +649,7 @@ unsafe fn trace<const ANY: bool>(
                 // SAFETY: group `g` is 32-byte aligned and four doubles.
                 unsafe { _mm256_store_pd(horizon.0[g].as_mut_ptr(), best) };
             }
+            visits.entered += u32::from(visits.entries > entries_before);
             if improved {
                 // SAFETY: AVX2 is enabled in this function.
                 let mut widest = unsafe { horizon.load(0) };
