@@ -1,13 +1,14 @@
 //! Single rays traced side by side: several searches of the triangle tree advanced in
 //! turns, a node or leaf of each at a time, so that one ray's wait for memory overlaps the
-//! others' work. The batch queries use it for the rays they trace one by one.
+//! others' work. The batch queries use it where packets proved wasteful over rays that
+//! share no leaves ([`crate::scene::Grouping::Paced`]).
 //!
-//! Where rays share few nodes (a mesh finer than the pixels, where packets are judged
-//! wasteful and rays go one by one) a single ray's search is a chain of cache misses:
-//! each node's address is known only once its parent is tested, and the CPU cannot look
-//! far enough ahead to reach the next ray. Here each step ends by asking the cache for the
-//! node or leaf its ray visits next (`simd::prefetch_child`) and turns to another
-//! ray; by the time the first ray's turn comes back, its memory has usually arrived.
+//! Where rays share few nodes (a mesh finer than the pixels) a single ray's search is a
+//! chain of cache misses: each node's address is known only once its parent is tested,
+//! and the CPU cannot look far enough ahead to reach the next ray. Here each step ends by
+//! asking the cache for the node or leaf its ray visits next (`simd::prefetch_child`) and
+//! turns to another ray; by the time the first ray's turn comes back, its memory has
+//! usually arrived.
 //!
 //! A closest-hit search visits the same nodes and leaves in the same order as
 //! [`crate::simd::closest`], with the same tests, so its hits are bit-identical; an
@@ -25,10 +26,9 @@ use crate::simd::{
 };
 use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit};
 
-/// Rays in flight at once. A step of one ray takes about as long as a fetch from the
-/// outer cache levels, so a few suffice: on the million-triangle torus at 320x180, 2
-/// gained less and 8 about the same (DEVELOPERS.md, "Rays traced one by one are traced
-/// side by side").
+/// Rays in flight at once. On the million-triangle torus at 320x180 (a probe, one
+/// thread): two gained half as much as four, eight a little more, but eight lost more on
+/// coherent rays (DEVELOPERS.md, "Rays that share no leaves are traced side by side").
 pub const IN_FLIGHT: usize = 4;
 
 /// A search in progress, one per slot of the rays in flight.
