@@ -161,16 +161,18 @@ impl Visits {
         self.leaves >= Self::JUDGED_FROM && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
     }
 
-    /// Whether hardly any leaf was entered by more than one ray (at most 1/16 more rays
-    /// than leaves entered): the rays share few nodes, and traced one by one, each ray's
-    /// search would be a chain of cache misses of its own. So a wasteful packet over a
-    /// mesh finer than the pixels (the bench's torus at 320x180: one ray per entered
-    /// leaf). Over the full-HD torus and through the bench's lens, where packets are
-    /// wasteful because their bounds are wide, neighbouring rays share leaves (three rays
-    /// per entered leaf on average); with a bound of one and a half, or one and a
-    /// quarter, rays per leaf, the lens row's batches traced 7–10% slower than one by one.
+    /// Whether the rays entered at least [`Visits::JUDGED_FROM`] leaves and hardly any of
+    /// them with more than one ray (at most 1/16 more rays than leaves entered): the rays
+    /// share few nodes, and traced one by one, each ray's search would be a chain of
+    /// cache misses of its own. So a wasteful packet over a mesh finer than the pixels
+    /// (the bench's torus at 320x180: 60 leaves entered, by 60 rays, of 555 reached, on
+    /// average). Through the bench's lens, where packets are wasteful because their
+    /// bounds are wide, neighbouring rays share leaves (three rays per entered leaf on
+    /// average), and a quarter of the wasteful packets enter no leaf at all (their rays
+    /// miss); counted as scattered, those made the lens row's batches 7–10% slower than
+    /// one by one.
     pub fn scattered(self) -> bool {
-        16 * self.entries <= 17 * self.entered
+        self.entered >= Self::JUDGED_FROM && 16 * self.entries <= 17 * self.entered
     }
 }
 
@@ -1179,6 +1181,23 @@ mod tests {
         let (scattered, shared) = (visits(34), visits(35));
         assert!(scattered.wasteful() && shared.wasteful());
         assert!(scattered.scattered() && !shared.scattered());
+        // Rays that enter too few leaves to tell (mostly misses) are not scattered.
+        for entered in [0, Visits::JUDGED_FROM - 1] {
+            let few = Visits {
+                leaves: 200,
+                entries: entered,
+                entered,
+            };
+            assert!(few.wasteful() && !few.scattered());
+        }
+        assert!(
+            Visits {
+                leaves: 200,
+                entries: Visits::JUDGED_FROM,
+                entered: Visits::JUDGED_FROM,
+            }
+            .scattered()
+        );
         // Each test runs on its own thread: the pacing starts fresh.
         let tree = PacedTree::Triangles;
         assert!(!super::scattered(tree));
