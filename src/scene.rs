@@ -581,8 +581,6 @@ impl Scene {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
             // `wide_leaves` only when it has AVX-512F too.
-            // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
-            // `wide_leaves` only when it has AVX-512F too.
             match self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
                 crate::packet::closest(
                     self.leaf_lanes(),
@@ -652,8 +650,6 @@ impl Scene {
             {
                 let mut triangles = [false; PACKET];
                 let n = rays.len();
-                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
-                // `wide_leaves` only when it has AVX-512F too.
                 // A ray already hit needs no triangle: an empty interval.
                 let prepared = || {
                     triangle_rays(
