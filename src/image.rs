@@ -449,6 +449,41 @@ impl Band<'_> {
         (len / (self.width as usize * 3)) as u32
     }
 
+    /// Stores the linear values of `tile`'s pixels, row by row (as
+    /// [`Tile::pixels`](crate::render::Tile::pixels) lists them): the format and encoding
+    /// are looked at once, and each row is one slice of the band.
+    pub fn set_tile(&mut self, tile: &crate::render::Tile, values: &[Rgb]) {
+        // Each row's channels as one flat run, in the file's order: loops over channels,
+        // not pixels, which the compiler turns into vector operations.
+        let w = tile.width as usize;
+        let row_start = |dy: u32| (dy as usize * self.width as usize + tile.x0 as usize) * 3;
+        let rows = (tile.dy0..).zip(values.chunks_exact(w).map(|row| row.as_flattened()));
+        match (&mut self.data, self.encoding) {
+            (BandData::Rgb8(bytes), Encoding::Linear) => {
+                for (dy, row) in rows {
+                    let start = row_start(dy);
+                    quantize_run(&mut bytes[start..start + 3 * w], row);
+                }
+            }
+            (BandData::Rgb8(bytes), Encoding::Srgb) => {
+                for (dy, row) in rows {
+                    let start = row_start(dy);
+                    for (out, &c) in bytes[start..start + 3 * w].iter_mut().zip(row) {
+                        *out = quantize(encode(c, Encoding::Srgb));
+                    }
+                }
+            }
+            (BandData::RgbF32(floats), _) => {
+                for (dy, row) in rows {
+                    let start = row_start(dy);
+                    for (out, &c) in floats[start..start + 3 * w].iter_mut().zip(row) {
+                        *out = c as f32;
+                    }
+                }
+            }
+        }
+    }
+
     /// Stores the linear value of pixel `(x, y0 + dy)`.
     #[inline]
     pub fn set(&mut self, x: u32, dy: u32, value: Rgb) {
@@ -483,12 +518,40 @@ pub fn encode(c: f64, encoding: Encoding) -> f64 {
     }
 }
 
+/// [`quantize`] of each of `values` into `out`, eight at a time where the CPU has AVX2.
+#[inline]
+fn quantize_run(out: &mut [u8], values: &[f64]) {
+    #[inline(always)]
+    fn run(out: &mut [u8], values: &[f64]) {
+        for (out, &c) in out.iter_mut().zip(values) {
+            *out = quantize(c);
+        }
+    }
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn run_avx2(out: &mut [u8], values: &[f64]) {
+        run(out, values);
+    }
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2.
+        unsafe { run_avx2(out, values) };
+        return;
+    }
+    run(out, values);
+}
+
 /// `floor(clamp(c * 256, 0, 255))`; NaN becomes 0.
 #[inline]
 pub fn quantize(c: f64) -> u8 {
-    // Rust's float-to-integer cast truncates toward zero and saturates (NaN to 0): for
-    // `c * 256` that is floor and clamp at once, without branches.
-    (c * 256.0) as u8
+    // Clamped first (`max` takes 0 over a NaN), so that the cast that truncates toward
+    // zero (floor, for what is left) needs none of the saturating cast's range checks.
+    #[allow(clippy::manual_clamp, reason = "`clamp` keeps a NaN, which must become 0")]
+    let clamped = (c * 256.0).max(0.0).min(255.0);
+    // SAFETY: `clamped` is a number in [0, 255], which fits a `u8`.
+    unsafe { clamped.to_int_unchecked::<u8>() }
 }
 
 /// Every byte value's decimal digits followed by a space, as the low bytes of a
@@ -671,6 +734,46 @@ mod tests {
         ];
         for (c, expected) in cases {
             assert_eq!(quantize(c), expected, "{c}");
+        }
+    }
+
+    #[test]
+    fn a_tile_is_stored_as_its_pixels_one_by_one() {
+        // Every format and encoding; whole and edge tiles, in a band below the first.
+        let formats = [OutputFormat::Ppm(PpmStyle::Plain), OutputFormat::Pfm];
+        let tiles = [(0, 0, 8, 8), (8, 3, 5, 2), (16, 7, 3, 1)];
+        for (format, encoding) in formats
+            .into_iter()
+            .flat_map(|f| [Encoding::Linear, Encoding::Srgb].map(|e| (f, e)))
+        {
+            for (x0, dy0, width, height) in tiles {
+                let tile = crate::render::Tile {
+                    x0,
+                    dy0,
+                    width,
+                    height,
+                };
+                let mut pixels = [(0, 0); crate::render::GROUP];
+                let n = tile.pixels(&mut pixels);
+                let values: Vec<Rgb> = (0..n)
+                    .map(|i| [i as f64 / 70.0, 0.3 - i as f64 / 50.0, 1.5 * (i % 3) as f64])
+                    .collect();
+                let (mut whole, mut one_by_one) =
+                    [0, 1].map(|_| Image::new(19, 16, format, encoding)).into();
+                whole.bands_mut(8)[1].set_tile(&tile, &values);
+                for (&(x, dy), &value) in pixels[..n].iter().zip(&values) {
+                    one_by_one.set(x, 8 + dy, value);
+                }
+                assert_eq!(
+                    whole.to_bytes(),
+                    one_by_one.to_bytes(),
+                    "{format:?} {encoding:?} {tile:?}"
+                );
+                assert_ne!(
+                    whole.to_bytes(),
+                    Image::new(19, 16, format, encoding).to_bytes()
+                );
+            }
         }
     }
 

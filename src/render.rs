@@ -198,24 +198,47 @@ pub const PACKET_SIDE: u32 = 8;
 /// Pixels of a group: at most [`PACKET_SIDE`]².
 pub const GROUP: usize = (PACKET_SIDE * PACKET_SIDE) as usize;
 
-/// The groups of a band `width` pixels wide and `rows` rows high, in render order: square
-/// groups of [`PACKET_SIDE`] (smaller at the right and bottom edges), left to right, each
-/// top to bottom, each group's pixels `(x, row in the band)` row by row, and how many.
-pub fn groups(width: u32, rows: u32) -> impl Iterator<Item = ([(u32, u32); GROUP], usize)> {
-    let side = PACKET_SIDE as usize;
-    (0..width).step_by(side).flat_map(move |x0| {
-        (0..rows).step_by(side).map(move |dy0| {
-            let mut pixels = [(0u32, 0u32); GROUP];
-            let mut n = 0;
-            for dy in dy0..(dy0 + PACKET_SIDE).min(rows) {
-                for x in x0..(x0 + PACKET_SIDE).min(width) {
-                    pixels[n] = (x, dy);
-                    n += 1;
-                }
+/// A group's pixels: columns `x0..x0 + width` of band rows `dy0..dy0 + height`, at most
+/// [`PACKET_SIDE`] each way.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Tile {
+    pub x0: u32,
+    pub dy0: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Tile {
+    /// The tile's pixels `(x, row in the band)` row by row into `out`, and how many.
+    #[inline]
+    pub fn pixels(&self, out: &mut [(u32, u32); GROUP]) -> usize {
+        let mut n = 0;
+        for dy in self.dy0..self.dy0 + self.height {
+            for x in self.x0..self.x0 + self.width {
+                out[n] = (x, dy);
+                n += 1;
             }
-            (pixels, n)
+        }
+        n
+    }
+}
+
+/// The groups of a band `width` pixels wide and `rows` rows high, in render order: square
+/// tiles of [`PACKET_SIDE`] (smaller at the right and bottom edges), left to right, each
+/// top to bottom.
+pub fn groups(width: u32, rows: u32) -> impl Iterator<Item = Tile> {
+    (0..width)
+        .step_by(PACKET_SIDE as usize)
+        .flat_map(move |x0| {
+            (0..rows)
+                .step_by(PACKET_SIDE as usize)
+                .map(move |dy0| Tile {
+                    x0,
+                    dy0,
+                    width: PACKET_SIDE.min(width - x0),
+                    height: PACKET_SIDE.min(rows - dy0),
+                })
         })
-    })
 }
 
 /// Renders every pixel of `image` with one integrator, specialized at compile time. Rays
@@ -242,13 +265,13 @@ pub fn render_with<T: Tracer, I: Integrator>(
         };
         let mut rays = [unused; GROUP];
         let mut values = [[0.0f64; 3]; GROUP];
-        for (pixels, n) in groups(width, rows) {
+        let mut pixels = [(0u32, 0u32); GROUP];
+        for tile in groups(width, rows) {
+            let n = tile.pixels(&mut pixels);
             if spp == 1 {
                 view.rays(&pixels[..n], band.y0, 0, &mut rays[..n]);
                 integrator.values(scene, &rays[..n], &mut values[..n]);
-                for (&(x, dy), value) in pixels[..n].iter().zip(&values) {
-                    band.set(x, dy, *value);
-                }
+                band.set_tile(&tile, &values[..n]);
                 continue;
             }
             let mut sums = [[0.0f64; 3]; GROUP];
@@ -261,9 +284,10 @@ pub fn render_with<T: Tracer, I: Integrator>(
                     }
                 }
             }
-            for (&(x, dy), sum) in pixels[..n].iter().zip(&sums) {
-                band.set(x, dy, sum.map(|c| c / f64::from(spp)));
+            for (value, sum) in values.iter_mut().zip(&sums[..n]) {
+                *value = sum.map(|c| c / f64::from(spp));
             }
+            band.set_tile(&tile, &values[..n]);
         }
         progress(u64::from(rows) * u64::from(width));
     });
@@ -277,7 +301,9 @@ mod tests {
     fn groups_cover_every_pixel_of_a_band_once_in_squares() {
         for (width, rows) in [(1, 1), (8, 8), (37, 16), (16, 5), (9, 17)] {
             let mut seen = vec![0; (width * rows) as usize];
-            for (pixels, n) in groups(width, rows) {
+            for tile in groups(width, rows) {
+                let mut pixels = [(0, 0); GROUP];
+                let n = tile.pixels(&mut pixels);
                 assert!(n > 0);
                 let (x0, y0) = pixels[0];
                 for &(x, y) in &pixels[..n] {

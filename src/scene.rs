@@ -573,9 +573,9 @@ impl Scene {
                 continue;
             }
             let prepared = if analytic {
-                triangle_rays(rays, |k, ray| out[k].map_or(ray.tmax, |h| h.t))
+                triangle_rays(self.avx2, rays, |k, ray| out[k].map_or(ray.tmax, |h| h.t))
             } else {
-                triangle_rays(rays, |_, ray| ray.tmax)
+                triangle_rays(self.avx2, rays, |_, ray| ray.tmax)
             };
             let prepared = &prepared[..rays.len()];
             #[cfg(target_arch = "x86_64")]
@@ -653,6 +653,7 @@ impl Scene {
                 // A ray already hit needs no triangle: an empty interval.
                 let prepared = || {
                     triangle_rays(
+                        self.avx2,
                         rays,
                         |k, ray| {
                             if out[k] { f64::NEG_INFINITY } else { ray.tmax }
@@ -1085,8 +1086,37 @@ fn finite(ray: &Ray) -> bool {
 /// `(tmin, tmax(k, ray))`. A run of rays with the same interval (camera rays share theirs)
 /// has it rounded to float32 once; intervals are compared bit for bit, as −0 and +0 round
 /// to different zeros.
+/// With `avx2` (the CPU has it), compiled for it: the conversions of a ray's coordinates
+/// then go four at a time.
 #[inline(always)]
-fn triangle_rays(rays: &[Ray], tmax: impl Fn(usize, &Ray) -> f64) -> [TriangleRay; PACKET] {
+fn triangle_rays(
+    avx2: bool,
+    rays: &[Ray],
+    tmax: impl Fn(usize, &Ray) -> f64,
+) -> [TriangleRay; PACKET] {
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn compiled_for_avx2(
+        rays: &[Ray],
+        tmax: impl Fn(usize, &Ray) -> f64,
+    ) -> [TriangleRay; PACKET] {
+        rounded_rays(rays, tmax)
+    }
+    #[cfg(target_arch = "x86_64")]
+    if avx2 {
+        // SAFETY: the caller's `avx2` is set only when the CPU has it.
+        return unsafe { compiled_for_avx2(rays, tmax) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = avx2;
+    rounded_rays(rays, tmax)
+}
+
+/// [`triangle_rays`], for any CPU.
+#[inline(always)]
+fn rounded_rays(rays: &[Ray], tmax: impl Fn(usize, &Ray) -> f64) -> [TriangleRay; PACKET] {
     let mut prepared = [TriangleRay::EMPTY; PACKET];
     let Some(first) = rays.first() else {
         return prepared;

@@ -149,7 +149,9 @@ fn trace_both<A: Tracer, B: Tracer>(
                 let rows = TILE.min(height - y0);
                 let mut rays = Vec::with_capacity((end - first) * rays_per_group);
                 let mut group = [view.ray(0, 0, 0); GROUP];
-                for (pixels, n) in groups(width, rows).skip(first).take(end - first) {
+                let mut pixels = [(0, 0); GROUP];
+                for tile in groups(width, rows).skip(first).take(end - first) {
+                    let n = tile.pixels(&mut pixels);
                     for s in 0..spp {
                         view.rays(&pixels[..n], y0, s, &mut group[..n]);
                         rays.extend_from_slice(&group[..n]);
