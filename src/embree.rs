@@ -14,7 +14,9 @@ use glam::DVec3;
 use crate::bvh::{f32_at_least, f32_at_most};
 use crate::plane::Plane;
 use crate::ray::Ray;
-use crate::scene::{Hit, Primitive, SceneCounts, SceneGeometry, Tracer, nearest_plane};
+use crate::scene::{
+    Hit, Primitive, SceneCounts, SceneGeometry, Tracer, nearest_plane, nearest_planes,
+};
 use crate::sphere::Sphere;
 use crate::triangle;
 
@@ -168,9 +170,7 @@ impl Tracer for EmbreeScene {
 
     /// Embree's coherent stream API (`rtcIntersect1M`) over all the rays at once.
     fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
-        for (ray, out) in rays.iter().zip(out.iter_mut()) {
-            *out = nearest_plane(&self.planes, ray);
-        }
+        nearest_planes(&self.planes, rays, out);
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return;
         }
@@ -192,12 +192,7 @@ impl Tracer for EmbreeScene {
 
     /// Embree's coherent stream API (`rtcOccluded1M`) over all the rays at once.
     fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
-        for (ray, out) in rays.iter().zip(out.iter_mut()) {
-            *out = self
-                .planes
-                .iter()
-                .any(|p| p.intersect(ray, ray.tmax).is_some());
-        }
+        crate::plane::any_planes(&self.planes, rays, out);
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return;
         }

@@ -548,7 +548,10 @@ fn quantize_run(out: &mut [u8], values: &[f64]) {
 pub fn quantize(c: f64) -> u8 {
     // Clamped first (`max` takes 0 over a NaN), so that the cast that truncates toward
     // zero (floor, for what is left) needs none of the saturating cast's range checks.
-    #[allow(clippy::manual_clamp, reason = "`clamp` keeps a NaN, which must become 0")]
+    #[allow(
+        clippy::manual_clamp,
+        reason = "`clamp` keeps a NaN, which must become 0"
+    )]
     let clamped = (c * 256.0).max(0.0).min(255.0);
     // SAFETY: `clamped` is a number in [0, 255], which fits a `u8`.
     unsafe { clamped.to_int_unchecked::<u8>() }

@@ -560,9 +560,9 @@ impl Scene {
         let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             if analytic {
+                nearest_planes(&self.planes, rays, out);
                 let mut tmax = [0f64; PACKET];
                 for (k, ray) in rays.iter().enumerate() {
-                    out[k] = nearest_plane(&self.planes, ray);
                     tmax[k] = out[k].map_or(ray.tmax, |h| h.t);
                 }
                 self.closest_spheres(rays, &tmax[..rays.len()], out);
@@ -636,9 +636,7 @@ impl Scene {
         for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
             let mut hint = AnyHitHint::default();
             if analytic {
-                for (ray, out) in rays.iter().zip(out.iter_mut()) {
-                    *out = self.any_plane(ray);
-                }
+                crate::plane::any_planes(&self.planes, rays, out);
                 self.any_spheres(rays, out, &mut hint);
             } else {
                 out.fill(false);
@@ -652,13 +650,9 @@ impl Scene {
                 let n = rays.len();
                 // A ray already hit needs no triangle: an empty interval.
                 let prepared = || {
-                    triangle_rays(
-                        self.avx2,
-                        rays,
-                        |k, ray| {
-                            if out[k] { f64::NEG_INFINITY } else { ray.tmax }
-                        },
-                    )
+                    triangle_rays(self.avx2, rays, |k, ray| {
+                        if out[k] { f64::NEG_INFINITY } else { ray.tmax }
+                    })
                 };
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
                 // `wide_leaves` only when it has AVX-512F too.
@@ -1006,6 +1000,21 @@ fn simd_available() -> bool {
 #[cfg(not(target_arch = "x86_64"))]
 fn wide_leaves_available() -> bool {
     false
+}
+
+/// [`nearest_plane`] of each of `rays`, into `out` (several rays at a time).
+pub fn nearest_planes(planes: &[Plane], rays: &[Ray], out: &mut [Option<Hit>]) {
+    let mut nearest = [None; PACKET];
+    for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
+        let nearest = &mut nearest[..rays.len()];
+        crate::plane::nearest_planes(planes, rays, nearest);
+        for (out, nearest) in out.iter_mut().zip(nearest.iter()) {
+            *out = nearest.map(|(t, i)| Hit {
+                t,
+                primitive: Primitive::Plane(i),
+            });
+        }
+    }
 }
 
 /// The nearest of `planes` hit with `ray.tmin < t < ray.tmax`, if any.
