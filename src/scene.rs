@@ -1092,11 +1092,9 @@ fn finite(ray: &Ray) -> bool {
 }
 
 /// Up to [`PACKET`] rays rounded for the triangle kernels, ray `k` with the interval
-/// `(tmin, tmax(k, ray))`. A run of rays with the same interval (camera rays share theirs)
-/// has it rounded to float32 once; intervals are compared bit for bit, as −0 and +0 round
-/// to different zeros.
-/// With `avx2` (the CPU has it), compiled for it: the conversions of a ray's coordinates
-/// then go four at a time.
+/// `(tmin, tmax(k, ray))` rounded outward. With `avx2` (the CPU has it), compiled for it:
+/// the conversions of a ray's coordinates, and the roundings, then go four or eight at a
+/// time.
 #[inline(always)]
 fn triangle_rays(
     avx2: bool,
@@ -1126,21 +1124,34 @@ fn triangle_rays(
 /// [`triangle_rays`], for any CPU.
 #[inline(always)]
 fn rounded_rays(rays: &[Ray], tmax: impl Fn(usize, &Ray) -> f64) -> [TriangleRay; PACKET] {
+    let n = rays.len().min(PACKET);
+    let (mut lower, mut upper) = ([0f64; PACKET], [0f64; PACKET]);
+    for (k, ray) in rays[..n].iter().enumerate() {
+        lower[k] = ray.tmin;
+        upper[k] = tmax(k, ray);
+    }
+    // Compared bit for bit: −0 and +0 round to different zeros.
+    let shared = (lower[..n].iter().zip(&upper[..n]))
+        .all(|(l, u)| (l.to_bits() == lower[0].to_bits()) & (u.to_bits() == upper[0].to_bits()));
     let mut prepared = [TriangleRay::EMPTY; PACKET];
-    let Some(first) = rays.first() else {
-        return prepared;
-    };
-    let round = |tmin: f64, tmax: f64| {
-        let interval = (bvh::f32_at_most(tmin), bvh::f32_at_least(tmax));
-        ((tmin.to_bits(), tmax.to_bits()), interval)
-    };
-    let mut last = round(first.tmin, tmax(0, first));
-    for (k, ray) in rays.iter().enumerate() {
-        let (tmin, tmax) = (ray.tmin, tmax(k, ray));
-        if (tmin.to_bits(), tmax.to_bits()) != last.0 {
-            last = round(tmin, tmax);
+    if shared {
+        // Camera rays share their interval: rounded once.
+        let interval = (bvh::f32_at_most(lower[0]), bvh::f32_at_least(upper[0]));
+        for (k, ray) in rays[..n].iter().enumerate() {
+            prepared[k] = TriangleRay::rounded(ray, interval);
         }
-        prepared[k] = TriangleRay::rounded(ray, last.1);
+        return prepared;
+    }
+    // In front of walls or behind spheres each ray has its own: all rounded in a loop of
+    // their own over the whole packet, which has no branches and which the compiler takes
+    // several at a time.
+    let (mut lower32, mut upper32) = ([0f32; PACKET], [0f32; PACKET]);
+    for k in 0..PACKET {
+        lower32[k] = bvh::f32_at_most(lower[k]);
+        upper32[k] = bvh::f32_at_least(upper[k]);
+    }
+    for (k, ray) in rays[..n].iter().enumerate() {
+        prepared[k] = TriangleRay::rounded(ray, (lower32[k], upper32[k]));
     }
     prepared
 }
