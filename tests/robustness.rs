@@ -1324,6 +1324,67 @@ fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
 }
 
 #[test]
+fn the_nearest_of_spheres_in_a_row_is_found_however_few_or_many_they_are() {
+    // Spheres one behind the other in any order, so that a search that kept the last hit
+    // rather than the nearest, or stopped at the first, would be caught: from one sphere
+    // (a tree of one leaf) to several leaves. The truth is the smallest `t` of every
+    // sphere's own test.
+    let mut state = 0x2545_f491_4f6c_dd1d_u64;
+    let mut unit = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut overlapping = 0;
+    for count in 1..=7 {
+        let geometry = SceneGeometry {
+            spheres: (0..count)
+                .map(|_| Sphere {
+                    center: DVec3::new(unit() - 0.5, unit() - 0.5, 3.0 + 8.0 * unit()),
+                    radius: 0.5 + unit(),
+                })
+                .collect(),
+            ..SceneGeometry::default()
+        };
+        let scene = Scene::build(&geometry);
+        let rays: Vec<Ray> = (0..256)
+            .map(|_| ray(DVec3::ZERO, DVec3::new(unit() - 0.5, unit() - 0.5, 4.0)))
+            .collect();
+        let (closest, any) = batch_queries(&scene, &rays);
+        for (k, r) in rays.iter().enumerate() {
+            let ts: Vec<f64> = geometry
+                .spheres
+                .iter()
+                .filter_map(|s| s.intersect(r, r.tmax))
+                .collect();
+            overlapping += usize::from(ts.len() > 1);
+            let nearest = ts.iter().copied().reduce(f64::min);
+            for hit in [closest[k], scene.closest_hit(r)] {
+                assert_eq!(hit.map(|h| h.t), nearest, "{count} spheres, ray {k}");
+                if let Some(hit) = hit {
+                    let raybatch::scene::Primitive::Sphere(id) = hit.primitive else {
+                        panic!("not a sphere");
+                    };
+                    let own = geometry.spheres[id as usize].intersect(r, r.tmax);
+                    assert_eq!(own, Some(hit.t), "{count} spheres, ray {k}: sphere {id}");
+                }
+            }
+            assert_eq!(any[k], nearest.is_some(), "{count} spheres, ray {k}");
+            assert_eq!(
+                scene.any_hit(r),
+                nearest.is_some(),
+                "{count} spheres, ray {k}"
+            );
+        }
+    }
+    assert!(
+        overlapping > 300,
+        "rays through more than one sphere: {overlapping}"
+    );
+}
+
+#[test]
 fn batch_queries_over_a_mesh_keep_each_rays_own_interval() {
     // Camera rays share their interval, and a batch over triangles alone rounds it once
     // for a run of rays; rays whose intervals change within a batch, in runs and one by
