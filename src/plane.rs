@@ -54,6 +54,8 @@ unsafe fn nearest_planes_avx2(planes: &[Plane], rays: &[Ray], out: &mut [Option<
     nearest_in_lanes(planes, rays, out);
 }
 
+/// [`nearest_planes`]'s body: whole groups of [`LANES`] rays side by side, the rest one
+/// by one.
 #[inline(always)]
 fn nearest_in_lanes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)>]) {
     let mut groups = rays.chunks_exact(LANES);
@@ -115,6 +117,8 @@ unsafe fn any_planes_avx2(planes: &[Plane], rays: &[Ray], out: &mut [bool]) {
     any_in_lanes(planes, rays, out);
 }
 
+/// [`any_planes`]'s body: whole groups of [`LANES`] rays side by side (stopping once all
+/// have crossed a plane), the rest one by one.
 #[inline(always)]
 fn any_in_lanes(planes: &[Plane], rays: &[Ray], out: &mut [bool]) {
     let mut groups = rays.chunks_exact(LANES);
