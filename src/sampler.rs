@@ -77,9 +77,9 @@ impl Sampler {
 
     /// [`Sampler::pixel_offset`] of sample `s` for each pixel `(x, y0 + dy)` of `pixels`,
     /// into `(u[i], v[i])`, and with `lens`, [`Sampler::lens`] into `lens[i]`: the same
-    /// numbers, a group at a time. The stratum is found once for the group, and where the
-    /// CPU has AVX-512 (whose 64-bit products hash eight pixels at once) the loop is
-    /// compiled for it.
+    /// numbers, a group at a time. The stratum is found once for the group, and the loop
+    /// is compiled for AVX-512 (whose 64-bit products hash eight pixels at once) or AVX2
+    /// (four, from 32-bit products) where the CPU has it.
     pub fn group(
         &self,
         (pixels, y0): (&[(u32, u32)], u32),
