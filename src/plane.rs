@@ -35,6 +35,11 @@ const LANES: usize = 4;
 /// order, each below the nearest `t` so far, finds (the same `t`, the first of equal ones).
 pub fn nearest_planes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)>]) {
     assert_eq!(rays.len(), out.len());
+    // Scenes of spheres alone come here too: no lanes to fill.
+    if planes.is_empty() {
+        out.fill(None);
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2.
@@ -98,6 +103,10 @@ fn nearest_one_by_one(planes: &[Plane], ray: &Ray) -> Option<(f64, u32)> {
 /// For each ray, whether it crosses some plane with `tmin < t < tmax`, into `out`.
 pub fn any_planes(planes: &[Plane], rays: &[Ray], out: &mut [bool]) {
     assert_eq!(rays.len(), out.len());
+    if planes.is_empty() {
+        out.fill(false);
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2.
