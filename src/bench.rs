@@ -86,6 +86,11 @@ pub struct SceneFigures {
     pub scene_bytes_per_primitive: f64,
     pub raybatch: TracerFigures,
     pub embree: Option<TracerFigures>,
+    /// For each thread count traced (in the order of the tracers' throughputs), how much
+    /// faster [`crate::compute_loop`] ran on it than on one thread, timed in the same
+    /// rounds as the tracers: the median of the rounds' ratios. `None` when one thread is
+    /// not among the counts, or for one thread itself.
+    pub compute_loop_scaling: Vec<Option<f64>>,
 }
 
 /// Figures for a whole-job benchmark.
@@ -397,6 +402,7 @@ fn trace_scene(
     if options.embree {
         return Err("this build has no Embree backend (build with --features embree)".to_string());
     }
+    let compute_loop_scaling;
     let (raybatch, embree) = {
         #[cfg(feature = "embree")]
         let mut reference = None;
@@ -444,7 +450,10 @@ fn trace_scene(
         let tracers: Vec<&(dyn Fn(Query) -> usize + Sync)> = std::iter::once(&ours_pass as _)
             .chain(reference_pass.as_ref().map(|pass| pass as _))
             .collect();
-        let mut figures = throughputs(&tracers, rays.len(), &options.threads, &pools, runs)
+        let (throughputs, scaling) =
+            throughputs(&tracers, rays.len(), &options.threads, &pools, runs);
+        compute_loop_scaling = scaling;
+        let mut figures = throughputs
             .into_iter()
             .zip(build_times)
             .map(|(throughput, times)| TracerFigures {
@@ -465,6 +474,7 @@ fn trace_scene(
         scene_bytes_per_primitive,
         raybatch,
         embree,
+        compute_loop_scaling,
     })
 }
 
@@ -588,19 +598,23 @@ fn count_batch_hits<T: Tracer>(tracer: &T, rays: &[Ray], any: bool) -> usize {
         .sum()
 }
 
-/// Each tracer's throughput at each thread count. Passes run in rounds: one round times
-/// every query at every thread count once, the tracers in turns for each, so a neighbour
-/// that slows the machine for a while slows the columns alike rather than one of them.
-/// The first round warms up and is not counted; each figure is the median of `runs`.
+/// Each tracer's throughput at each thread count, and the compute loop's scaling at each
+/// (see [`SceneFigures::compute_loop_scaling`]). Passes run in rounds: one round times
+/// every query at every thread count once, the tracers in turns for each, then the compute
+/// loop, so a neighbour that slows the machine for a while slows the columns alike rather
+/// than one of them. The first round warms up and is not counted; each figure is the
+/// median of `runs`.
 fn throughputs(
     tracers: &[&(dyn Fn(Query) -> usize + Sync)],
     rays: usize,
     threads: &[usize],
     pools: &[rayon::ThreadPool],
     runs: usize,
-) -> Vec<Vec<Throughput>> {
+) -> (Vec<Vec<Throughput>>, Vec<Option<f64>>) {
     // times[tracer][thread count][query]
     let mut times = vec![vec![Query::ALL.map(|_| Vec::new()); threads.len()]; tracers.len()];
+    // compute[thread count][round]
+    let mut compute = vec![Vec::new(); threads.len()];
     for round in 0..=runs.max(1) {
         for (p, pool) in pools.iter().enumerate() {
             wake(pool);
@@ -613,9 +627,22 @@ fn throughputs(
                     }
                 }
             }
+            let start = Instant::now();
+            pool.install(|| std::hint::black_box(crate::compute_loop::pass()));
+            if round > 0 {
+                compute[p].push(start.elapsed().as_secs_f64());
+            }
         }
     }
-    times
+    let one = threads.iter().position(|&n| n == 1);
+    let scaling = (0..threads.len())
+        .map(|p| {
+            let one = one.filter(|&one| one != p)?;
+            let ratios = compute[one].iter().zip(&compute[p]).map(|(a, b)| a / b);
+            Some(median_of(ratios.collect()))
+        })
+        .collect();
+    let throughputs = times
         .into_iter()
         .map(|per_thread| {
             per_thread
@@ -635,7 +662,8 @@ fn throughputs(
                 })
                 .collect()
         })
-        .collect()
+        .collect();
+    (throughputs, scaling)
 }
 
 /// Keeps every thread of `pool` busy for a few milliseconds. A pool left idle while the
@@ -934,6 +962,7 @@ impl BenchReport {
                 "scene_bytes_per_primitive": s.scene_bytes_per_primitive,
                 "raybatch": tracer(&s.raybatch),
                 "embree": s.embree.as_ref().map(tracer),
+                "compute_loop_scaling": s.compute_loop_scaling,
             })).collect::<Vec<_>>(),
             "jobs": self.jobs.iter().map(|j| json!({
                 "name": j.name, "jobs": j.jobs, "seconds": j.seconds,
@@ -949,11 +978,11 @@ impl BenchReport {
         let with_embree = self.scenes.iter().any(|s| s.embree.is_some());
         let _ = writeln!(
             out,
-            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring camera rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it.\n"
+            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring camera rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
         );
         let _ = writeln!(
             out,
-            "| scene | primitives | threads | closest 1 | closest 64 | any 1 | any 1 no hint | any 64 | any 1 / closest 1 |{}",
+            "| scene | primitives | threads | closest 1 | closest 64 | any 1 | any 1 no hint | any 64 | any 1 / closest 1 |{} compute loop / 1 thread |",
             if with_embree {
                 " Embree closest 1 | Embree closest 64 | Embree any 1 | Embree any 64 | closest 1 / Embree 1 | closest 64 / Embree 1 | closest 64 / Embree 64 |"
             } else {
@@ -962,7 +991,7 @@ impl BenchReport {
         );
         let _ = writeln!(
             out,
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|{}",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|{}---:|",
             if with_embree {
                 "---:|---:|---:|---:|---:|---:|---:|"
             } else {
@@ -1002,7 +1031,12 @@ impl BenchReport {
                         t.closest_batch / e.closest_batch
                     );
                 }
-                out.push('\n');
+                let scaling = s.compute_loop_scaling.get(i).copied().flatten();
+                let _ = writeln!(
+                    out,
+                    " {} |",
+                    scaling.map_or("-".to_string(), |x| format!("{x:.2}x"))
+                );
             }
         }
         let _ = writeln!(out);

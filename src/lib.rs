@@ -28,6 +28,7 @@ pub mod bvh;
 pub mod camera;
 pub mod collapse;
 pub mod compare;
+pub mod compute_loop;
 #[cfg(feature = "embree")]
 pub mod embree;
 pub mod error;
