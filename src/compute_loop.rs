@@ -5,8 +5,8 @@
 //!
 //! On a virtual machine two "cores" may be two threads of one physical core, or share it
 //! with other guests for a while; a tracer cannot scale further than this loop does then.
-//! On BENCHMARKS.md's AVX2-only host, a loop like it read anywhere from 0.76x to 1.98x
-//! on two threads over one, minutes apart.
+//! On BENCHMARKS.md's AVX2-only host, a loop like it read anywhere from 0.76x to 1.70x
+//! on two threads over one within a minute (DEVELOPERS.md, "How the bench measures").
 
 use rayon::prelude::*;
 
