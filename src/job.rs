@@ -74,6 +74,9 @@ pub struct JobReport {
     pub planes: Option<usize>,
     /// Whether the triangle tree was the previous job's (same meshes, same transforms).
     pub triangle_tree_reused: bool,
+    /// The build preset of the triangle tree ([`BuildPreset::name`]; the previous job's
+    /// when reused); `None` without triangles or with the Embree backend.
+    pub triangle_tree_preset: Option<&'static str>,
     /// Seconds reading the manifest and meshes, building trees, rendering, writing.
     pub load_s: f64,
     pub build_s: f64,
@@ -97,6 +100,7 @@ impl JobReport {
             spheres: None,
             planes: None,
             triangle_tree_reused: false,
+            triangle_tree_preset: None,
             load_s: 0.0,
             build_s: 0.0,
             render_s: 0.0,
@@ -126,6 +130,7 @@ impl JobReport {
             "spheres": self.spheres,
             "planes": self.planes,
             "triangle_tree_reused": self.triangle_tree_reused,
+            "triangle_tree_preset": self.triangle_tree_preset,
             "width": self.width,
             "height": self.height,
             "spp": self.spp,
@@ -178,18 +183,25 @@ impl Batch {
         reused: Option<Arc<TriangleTree>>,
         report: &mut JobReport,
     ) -> Scene {
-        let preset = BuildPreset::default();
+        // Spheres keep the default: reinsertion did not speed up a sphere field's tracing
+        // (DEVELOPERS.md, "Build").
+        let spheres = BuildPreset::default();
         if let Some(tree) = reused {
             report.triangle_tree_reused = true;
-            return Scene::build_around(geometry, preset, tree);
+            report.triangle_tree_preset = Some(tree.preset().name());
+            return Scene::build_around(geometry, spheres, tree);
         }
         if geometry.triangles.is_empty() {
             // Nothing to build, and the last tree stays for the jobs after this one.
-            return Scene::build_with(geometry, preset);
+            return Scene::build_with(geometry, spheres);
         }
         // Drop the old tree before building the new one, so two are never held at once.
         self.last_tree = None;
-        let scene = Scene::build_with(geometry, preset);
+        let rays = report.camera_rays().unwrap_or(0);
+        let preset = BuildPreset::for_triangles(geometry.triangles.len(), rays);
+        let tree = Arc::new(TriangleTree::build(&geometry.triangles, preset));
+        report.triangle_tree_preset = Some(preset.name());
+        let scene = Scene::build_around(geometry, spheres, tree);
         self.tree_builds += 1;
         // Kept for the next job only while its meshes are (not after the last job).
         if !geometry.sources.is_empty() {

@@ -1216,6 +1216,7 @@ pub struct TriangleTree {
     hint_roots: std::sync::OnceLock<Vec<u32>>,
     /// Triangles it was built from.
     len: usize,
+    preset: BuildPreset,
 }
 
 impl TriangleTree {
@@ -1227,7 +1228,13 @@ impl TriangleTree {
             bvh,
             hint_roots: std::sync::OnceLock::new(),
             len: triangles.len(),
+            preset,
         }
+    }
+
+    /// The preset the tree was built with.
+    pub fn preset(&self) -> BuildPreset {
+        self.preset
     }
 
     /// Each block's hint subtree, made by the first call.

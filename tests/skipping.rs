@@ -1,13 +1,15 @@
 //! What a job does not do because its scene does not need it: no mesh read or triangle
 //! tree without meshes, no sphere tree without spheres, no closest-hit search or normals
 //! for `hit`, a mesh shared by a batch read and built once, the last job's meshes let go
-//! before its build, no any-hit hint subtrees until an any-hit query. (glTF images never
-//! being decoded is `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
+//! before its build, no any-hit hint subtrees until an any-hit query, no reinsertion in a
+//! triangle tree that too few rays will cross. (glTF images never being decoded is
+//! `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
 
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 
 use glam::DVec3;
+use raybatch::bvh::BuildPreset;
 use raybatch::job::{Batch, JobOptions};
 use raybatch::mesh::MeshCache;
 use raybatch::scene::{Hit, SceneCounts, Tracer};
@@ -242,4 +244,66 @@ fn a_mesh_shared_by_a_batch_is_read_once_and_its_tree_built_once_while_placed_al
     dir.write("tetra.obj", format!("{TETRAHEDRON}# a longer file\n"));
     assert!(!run(&mut batch, &dir.join("c.json")));
     assert_eq!(batch.triangle_tree_builds(), 2);
+}
+
+#[test]
+fn a_job_builds_its_triangle_tree_with_reinsertion_only_from_64_rays_per_triangle() {
+    // A torus of 400 triangles: 160x160 camera rays are exactly 64 per triangle, one
+    // column fewer falls short. A second job reuses the first's tree, and its preset.
+    let dir = Dir::new();
+    let torus = raybatch::procedural::torus(1.0, 0.35, 20, 10);
+    assert_eq!(torus.triangles.len(), 400);
+    dir.write("torus.obj", raybatch::procedural::to_obj(&torus, ""));
+    let job = |name: &str, width: u32, spp: u32| {
+        dir.write(
+            &format!("{name}.json"),
+            format!(
+                r#"{{"image": {{"width": {width}, "height": 160}}, "integrator": {{"type": "normal"}},
+                    "sampler": {{"type": "stratified", "spp": {spp}}},
+                    "camera": {{"look_from": [0.5, 2, 3], "look_at": [0, 0, 0], "vfov": 50}},
+                    "meshes": [{{"file": "torus.obj"}}], "output": "{name}.pfm"}}"#
+            ),
+        )
+    };
+    let mut batch = Batch::new(JobOptions::default());
+    for (name, width, spp, preset, reused) in [
+        ("enough", 160, 1, "very fast", false),
+        ("reused", 1, 1, "very fast", true),
+        ("short", 159, 1, "fastest", false),
+        ("sampled", 40, 4, "very fast", false),
+    ] {
+        if !reused {
+            batch = Batch::new(JobOptions::default());
+        }
+        let report = batch.run(&job(name, width, spp), &|_| {});
+        assert!(report.ok(), "{name}: {:?}", report.error);
+        assert_eq!(report.triangle_tree_preset, Some(preset), "{name}");
+        assert_eq!(report.triangle_tree_reused, reused, "{name}");
+        let stats = report.to_json();
+        assert_eq!(stats["triangle_tree_preset"], preset, "{name}");
+    }
+
+    // The image does not depend on the tree: the default tree renders the same bytes,
+    // although reinsertion reordered the triangles.
+    let manifest = Manifest::load(&dir.join("enough.json")).unwrap();
+    let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
+    let [reinserted, default] = [BuildPreset::VeryFast, BuildPreset::default()]
+        .map(|preset| Scene::build_with(&geometry, preset));
+    let order = |scene: &Scene| -> Vec<u32> {
+        scene
+            .triangle_tree()
+            .blocks()
+            .iter()
+            .flat_map(|b| b.ids)
+            .collect()
+    };
+    assert_ne!(order(&reinserted), order(&default), "the trees must differ");
+    let [a, b] = [&reinserted, &default]
+        .map(|scene| raybatch::render::render(scene, &manifest, &|_| {}).unwrap());
+    assert!(a == b, "the images differ");
+    assert_eq!(dir.read("enough.pfm"), {
+        let path = dir.join("default.pfm");
+        b.write(&path).unwrap();
+        std::fs::read(&path).unwrap()
+    });
 }
