@@ -328,8 +328,8 @@ impl BuildPreset {
     /// through `triangles` triangles: [`BuildPreset::VeryFast`] from
     /// [`REINSERTION_FROM_RAYS_PER_TRIANGLE`] rays per triangle, else the default. The
     /// reinsertion costs time in proportion to the triangles and saves it in proportion to
-    /// the rays: on a mesh of long thin triangles (the fandisk scan, 13k triangles, at full
-    /// HD) a fifth of the job's instructions, elsewhere about as much as it costs
+    /// the rays: on a mesh of long thin triangles (the fandisk CAD part, 13k triangles, at
+    /// full HD) a sixth of the job's instructions, elsewhere about as much as it costs
     /// (DEVELOPERS.md, "Build effort follows the rays"). Images do not depend on it.
     pub fn for_triangles(triangles: usize, rays: u64) -> BuildPreset {
         let per_triangle = REINSERTION_FROM_RAYS_PER_TRIANGLE;
