@@ -35,7 +35,7 @@ pub fn pass() -> f32 {
 }
 
 /// One task: the chains started from `seed`, stepped [`STEPS`] times, summed.
-pub fn task(seed: usize) -> f32 {
+fn task(seed: usize) -> f32 {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2.
