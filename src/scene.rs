@@ -161,16 +161,17 @@ impl SceneGeometry {
             let m = transform * instance.transform;
             let place = |p: &[f32; 3]| m.transform_point3(DVec3::from_array(p.map(f64::from)));
             let in_range = |q: DVec3| q.is_finite() && q.abs().max_element() <= MAX_MAGNITUDE;
-            // In parallel, for million-triangle meshes; a vertex out of range is then
-            // looked for again in order, to name the first.
-            let world: Option<Vec<[f32; 3]>> = geometry
-                .positions
-                .par_iter()
-                .map(|p| {
-                    let q = place(p);
-                    in_range(q).then(|| q.as_vec3().to_array())
-                })
-                .collect();
+            let to_world = |p: &[f32; 3]| {
+                let q = place(p);
+                in_range(q).then(|| q.as_vec3().to_array())
+            };
+            // In parallel for large meshes; a vertex out of range is then looked for again
+            // in order, to name the first.
+            let world: Option<Vec<[f32; 3]>> = if geometry.positions.len() < PARALLEL_PLACING {
+                geometry.positions.iter().map(to_world).collect()
+            } else {
+                geometry.positions.par_iter().map(to_world).collect()
+            };
             let Some(world) = world else {
                 let (p, q) = geometry
                     .positions
@@ -185,16 +186,24 @@ impl SceneGeometry {
                     ),
                 });
             };
-            self.triangles.par_extend(
-                geometry
-                    .triangles
-                    .par_iter()
-                    .map(|t| t.map(|i| world[i as usize])),
-            );
+            let corners = |t: &[u32; 3]| t.map(|i| world[i as usize]);
+            if geometry.triangles.len() < PARALLEL_PLACING {
+                self.triangles
+                    .extend(geometry.triangles.iter().map(corners));
+            } else {
+                self.triangles
+                    .par_extend(geometry.triangles.par_iter().map(corners));
+            }
         }
         Ok(())
     }
 }
+
+/// Vertices or triangles of one mesh instance from which [`SceneGeometry::add_mesh`]
+/// places them in parallel. Handing work to the pool and waiting for it costs each call a
+/// wake-up of a worker; a glTF file of many small instances (the 67 of the engine of
+/// `assimp-testmodels`) paid it twice per instance.
+const PARALLEL_PLACING: usize = 1 << 14;
 
 /// What a ray hit.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -231,3 +231,95 @@ fn manifest_numbers_are_the_float64s_they_denote() {
     let origin = manifest.camera.frame.origin;
     assert_eq!(bits(&origin.to_array()), bits(&values[..3]));
 }
+
+#[test]
+fn instances_small_and_large_are_placed_where_float64_puts_them_in_order() {
+    use glam::{DMat4, DQuat, DVec3};
+    use raybatch::SceneGeometry;
+    use raybatch::mesh::{Geometry, Instance, MeshFile};
+    use std::sync::Arc;
+
+    // Two geometries: a few vertices, and more than are placed one by one (placing goes
+    // parallel from 16,384), each as an instance of the file and under the manifest's
+    // transform.
+    let grid = |n: u32| Geometry {
+        positions: (0..n)
+            .map(|i| [i as f32 * 0.25, (i % 7) as f32 - 3.0, (i % 13) as f32 * 0.5])
+            .collect(),
+        triangles: (0..n - 2).map(|i| [i, i + 1, i + 2]).collect(),
+    };
+    let own = DMat4::from_scale_rotation_translation(
+        DVec3::new(1.0, 2.0, 0.5),
+        DQuat::from_axis_angle(DVec3::new(1.0, 1.0, 0.0).normalize(), 0.7),
+        DVec3::new(-4.0, 2.0, 9.0),
+    );
+    let mesh = Arc::new(MeshFile {
+        geometries: vec![grid(10), grid(20_000)],
+        instances: vec![
+            Instance {
+                geometry: 1,
+                transform: own,
+            },
+            Instance {
+                geometry: 0,
+                transform: DMat4::IDENTITY,
+            },
+            Instance {
+                geometry: 0,
+                transform: own,
+            },
+        ],
+        warnings: Vec::new(),
+    });
+    let outer =
+        DMat4::from_translation(DVec3::new(0.5, 0.0, -1.0)) * DMat4::from_scale(DVec3::splat(3.0));
+    let mut geometry = SceneGeometry::default();
+    geometry.add_mesh(&mesh, outer, "grid".as_ref()).unwrap();
+
+    // Row by row in float64: `outer · own · p`, rounded to float32.
+    let apply = |m: &DMat4, p: [f64; 3]| -> [f64; 3] {
+        let r = m.to_cols_array_2d();
+        [0, 1, 2].map(|row| (0..3).map(|k| r[k][row] * p[k]).sum::<f64>() + r[3][row])
+    };
+    let mut expected = Vec::new();
+    for instance in &mesh.instances {
+        let g = &mesh.geometries[instance.geometry];
+        let world: Vec<[f64; 3]> = g
+            .positions
+            .iter()
+            .map(|p| apply(&outer, apply(&instance.transform, p.map(f64::from))))
+            .collect();
+        expected.extend(g.triangles.iter().map(|t| t.map(|i| world[i as usize])));
+    }
+    assert_eq!(geometry.triangles.len(), expected.len());
+    for (k, (got, want)) in geometry.triangles.iter().zip(&expected).enumerate() {
+        for (g, w) in got.iter().flatten().zip(want.iter().flatten()) {
+            // Float64 sums in another order differ by far less than half a float32 step.
+            let step = f64::from((*w as f32).abs()).max(1e-30) * f64::from(f32::EPSILON);
+            assert!(
+                (f64::from(*g) - w).abs() <= step,
+                "triangle {k}: {got:?} against {want:?}"
+            );
+        }
+    }
+
+    // A vertex out of range is named, the first in order, in either kind of instance.
+    for (n, far) in [(10u32, [3usize, 7]), (20_000, [17_000, 18_000])] {
+        let mut g = grid(n);
+        g.positions[far[0]] = [1e30, 0.0, 0.0];
+        g.positions[far[1]] = [2e30, 0.0, 0.0];
+        let bad = Arc::new(MeshFile {
+            geometries: vec![g],
+            instances: vec![Instance {
+                geometry: 0,
+                transform: DMat4::IDENTITY,
+            }],
+            warnings: Vec::new(),
+        });
+        let error = SceneGeometry::default()
+            .add_mesh(&bad, DMat4::IDENTITY, "far".as_ref())
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("vertex [1e30, 0.0, 0.0]"), "{n}: {error}");
+    }
+}
