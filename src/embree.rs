@@ -209,11 +209,7 @@ impl Tracer for EmbreeScene {
     }
 
     fn any_hit(&self, ray: &Ray) -> bool {
-        if self
-            .planes
-            .iter()
-            .any(|p| p.intersect(ray, ray.tmax).is_some())
-        {
+        if crate::plane::any_plane(&self.planes, ray) {
             return true;
         }
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {

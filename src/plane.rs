@@ -82,13 +82,14 @@ fn nearest_in_lanes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)
         }
     }
     for (ray, out) in groups.remainder().iter().zip(outs.into_remainder()) {
-        *out = nearest_one_by_one(planes, ray);
+        *out = nearest_plane(planes, ray);
     }
 }
 
-/// The nearest crossing of one ray, the planes one by one.
+/// The nearest of `planes` that `ray` crosses with `tmin < t < tmax`, as `(t, index in
+/// planes)`, the planes one by one (the first of equal `t`s).
 #[inline]
-fn nearest_one_by_one(planes: &[Plane], ray: &Ray) -> Option<(f64, u32)> {
+pub fn nearest_plane(planes: &[Plane], ray: &Ray) -> Option<(f64, u32)> {
     let mut nearest = None;
     let mut tmax = ray.tmax;
     for (i, plane) in planes.iter().enumerate() {
@@ -98,6 +99,12 @@ fn nearest_one_by_one(planes: &[Plane], ray: &Ray) -> Option<(f64, u32)> {
         }
     }
     nearest
+}
+
+/// Whether `ray` crosses some plane of `planes` with `tmin < t < tmax`.
+#[inline]
+pub fn any_plane(planes: &[Plane], ray: &Ray) -> bool {
+    planes.iter().any(|p| p.intersect(ray, ray.tmax).is_some())
 }
 
 /// For each ray, whether it crosses some plane with `tmin < t < tmax`, into `out`.
@@ -147,7 +154,7 @@ fn any_in_lanes(planes: &[Plane], rays: &[Ray], out: &mut [bool]) {
         out.copy_from_slice(&found);
     }
     for (ray, out) in groups.remainder().iter().zip(outs.into_remainder()) {
-        *out = planes.iter().any(|p| p.intersect(ray, ray.tmax).is_some());
+        *out = any_plane(planes, ray);
     }
 }
 
@@ -264,7 +271,7 @@ mod tests {
             any_planes(&planes, rays, &mut any);
             any_in_lanes(&planes, rays, &mut plain_any);
             for (k, ray) in rays.iter().enumerate() {
-                let expected = nearest_one_by_one(&planes, ray);
+                let expected = nearest_plane(&planes, ray);
                 let bits = |x: Option<(f64, u32)>| x.map(|(t, i)| (t.to_bits(), i));
                 assert_eq!(bits(nearest[k]), bits(expected), "{n} rays, ray {k}");
                 assert_eq!(bits(plain[k]), bits(expected), "{n} rays, ray {k}");

@@ -757,13 +757,7 @@ impl Scene {
     /// set up its large stack frame, on scenes of triangles only too.
     #[inline(never)]
     fn any_analytic(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        self.any_plane(ray) || self.any_sphere(ray, hint)
-    }
-
-    fn any_plane(&self, ray: &Ray) -> bool {
-        self.planes
-            .iter()
-            .any(|p| p.intersect(ray, ray.tmax).is_some())
+        crate::plane::any_plane(&self.planes, ray) || self.any_sphere(ray, hint)
     }
 
     /// Whether a sphere has `ray.tmin < t < ray.tmax`, the hint's sphere tested first.
@@ -1018,28 +1012,22 @@ pub fn nearest_planes(planes: &[Plane], rays: &[Ray], out: &mut [Option<Hit>]) {
         let nearest = &mut nearest[..rays.len()];
         crate::plane::nearest_planes(planes, rays, nearest);
         for (out, nearest) in out.iter_mut().zip(nearest.iter()) {
-            *out = nearest.map(|(t, i)| Hit {
-                t,
-                primitive: Primitive::Plane(i),
-            });
+            *out = nearest.map(plane_hit);
         }
     }
 }
 
 /// The nearest of `planes` hit with `ray.tmin < t < ray.tmax`, if any.
 pub fn nearest_plane(planes: &[Plane], ray: &Ray) -> Option<Hit> {
-    let mut best = None;
-    let mut tmax = ray.tmax;
-    for (i, plane) in planes.iter().enumerate() {
-        if let Some(t) = plane.intersect(ray, tmax) {
-            tmax = t;
-            best = Some(Hit {
-                t,
-                primitive: Primitive::Plane(i as u32),
-            });
-        }
+    crate::plane::nearest_plane(planes, ray).map(plane_hit)
+}
+
+/// The hit of plane `i` at `t`.
+fn plane_hit((t, i): (f64, u32)) -> Hit {
+    Hit {
+        t,
+        primitive: Primitive::Plane(i),
     }
-    best
 }
 
 /// A float64 ray rounded for the float32 triangle path: origin and direction to nearest,
