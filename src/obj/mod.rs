@@ -63,10 +63,12 @@ mod tests {
                         (true, 2) => format!("v {a} {b} {c} 1 0 0"),
                         (true, _) => format!("v {a} x {c}"),
                         _ => {
-                            // Any white space separates words, Unicode's too.
-                            let gap =
-                                [" ", "\t", "  ", "\u{a0}", "\x0c", "\u{3000}"][next(6) as usize];
-                            format!("v{gap}{a}\t{b}{gap}{c}")
+                            // Any white space separates words, Unicode's too; mostly
+                            // single spaces, the form the reader takes a shorter way.
+                            let gaps = [" ", " ", " ", "\t", "  ", "\u{a0}", "\x0c", "\u{3000}"];
+                            let [g, h, i] = [next(8), next(8), next(8)].map(|k| gaps[k as usize]);
+                            let end = ["", "", " ", "\t"][next(4) as usize];
+                            format!("v{g}{a}{h}{b}{i}{c}{end}")
                         }
                     }
                 }
@@ -172,6 +174,40 @@ mod tests {
     }
 
     #[test]
+    fn lines_of_the_common_forms_read_as_tobj_reads_them_however_they_end() {
+        // The reader's shorter way takes these lines; each one also closes the file, so
+        // that it ends at the text's end, in any chunk.
+        let lines = [
+            "f 1 2 3",
+            "f 1 2 3 ",
+            "f  1  2  3  4",
+            "f 4 3 2 1 ",
+            "f 001 2 3",
+            "f 1 2 3\r",
+            "f 1 2 3 \r",
+            "v 1.5 -2 +3.25",
+            "v  -.5  0.  7",
+            "v 1 2 3 ",
+            "v 1 2 3\r",
+        ];
+        for line in lines {
+            for ending in ["", "\n", "\r\n", " \n", "\r\r\n"] {
+                let text = format!("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n{line}{ending}");
+                let reference = parse_with_tobj(text.as_bytes(), Path::new("common.obj"));
+                let reference = reference.unwrap_or_else(|e| panic!("{text:?}: {e}"));
+                for chunk in [usize::MAX, 9, 3] {
+                    let mesh = fast::parse_in_chunks(text.as_bytes(), chunk);
+                    assert_eq!(
+                        mesh.as_ref(),
+                        Some(&reference),
+                        "{text:?}, chunks of {chunk}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn the_fast_reader_declines_what_it_does_not_cover() {
         let declined = [
             "v 0 0 0 0.5\n",
@@ -181,6 +217,10 @@ mod tests {
             "f 1 2 3\nv 0 0 0\nv 1 0 0\nv 0 1 0\n",
             "v 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl\nf 1 2 3\n",
             "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1/1 2 3\n",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 0\n",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4294967297\n",
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999\n",
         ];
         for text in declined {
             assert!(fast::parse(text.as_bytes()).is_none(), "{text}");
