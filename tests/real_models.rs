@@ -1,7 +1,8 @@
 //! Real data, outside the repository: the scanned and CAD models of `../shared/models`
 //! (set `RAYBATCH_MODELS` to that folder) and Debian's `assimp-testmodels` glTF files (set
-//! `RAYBATCH_GLTF`, e.g. to /usr/share/assimp/models/glTF2). Ignored by default so
-//! `cargo test` passes on a fresh clone; `.ci/run` runs them with `--include-ignored`.
+//! `RAYBATCH_GLTF`, e.g. to /usr/share/assimp/models/glTF2) and the OBJ files beside them.
+//! Ignored by default so `cargo test` passes on a fresh clone; `.ci/run` runs them with
+//! `--include-ignored`.
 
 use std::path::{Path, PathBuf};
 
@@ -148,21 +149,44 @@ fn scanned_models_render_as_a_batch_with_shared_loads() {
 fn the_fast_obj_reader_reads_every_scanned_model_exactly_as_tobj_does() {
     let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
     assert!(models.len() >= 5, "{models:?}");
-    let mut fast = 0;
-    for model in &models {
-        let bytes = std::fs::read(model).unwrap();
-        let reference = raybatch::obj::parse_with_tobj(&bytes, model).unwrap();
-        if let Some(mesh) = raybatch::obj::fast::parse(&bytes) {
-            assert!(mesh == reference, "{} differs from tobj", model.display());
-            fast += 1;
-        }
-    }
+    let fast = read_fast_as_tobj_reads(&models);
     // Real files are what the fast reader is for: it must not decline them all.
     assert!(
         fast * 2 > models.len(),
         "only {fast} of {} read fast",
         models.len()
     );
+}
+
+#[test]
+#[ignore = "needs RAYBATCH_GLTF (Debian's assimp-testmodels glTF2 folder)"]
+fn obj_files_beside_the_debian_gltf_folder_read_fast_exactly_as_tobj_reads_them() {
+    // assimp's own OBJ tests: long lines, no final line end, runs of spaces, points,
+    // lines, vertex colours, other number forms, UTF-16 and malformed files.
+    let files = files_with(&folder("RAYBATCH_GLTF").join("../OBJ"), &["obj"]);
+    assert!(files.len() >= 15, "{files:?}");
+    let fast = read_fast_as_tobj_reads(&files);
+    assert!(
+        fast * 2 > files.len(),
+        "only {fast} of {} read fast",
+        files.len()
+    );
+}
+
+/// Reads each file with the fast reader and with `tobj`: where the fast reader takes a
+/// file, `tobj` must read it and give the same mesh. Returns how many it took.
+fn read_fast_as_tobj_reads(files: &[PathBuf]) -> usize {
+    let mut fast = 0;
+    for file in files {
+        let bytes = std::fs::read(file).unwrap();
+        if let Some(mesh) = raybatch::obj::fast::parse(&bytes) {
+            let reference = raybatch::obj::parse_with_tobj(&bytes, file);
+            let reference = reference.unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+            assert!(mesh == reference, "{} differs from tobj", file.display());
+            fast += 1;
+        }
+    }
+    fast
 }
 
 #[test]

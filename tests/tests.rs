@@ -24,8 +24,8 @@
 //!   references, and proof that it catches rays started without an offset.
 //! - `skipping`: work a scene does not need is not done (trees, closest-hit searches,
 //!   normals, rereading and rebuilding a batch's shared mesh, any-hit hint subtrees).
-//! - `real_models`: the scanned models of `../shared/models` and Debian's glTF test files;
-//!   ignored by default (run by `.ci/run` with `--include-ignored`).
+//! - `real_models`: the scanned models of `../shared/models` and Debian's glTF and OBJ test
+//!   files; ignored by default (run by `.ci/run` with `--include-ignored`).
 
 mod util;
 
