@@ -12,7 +12,7 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DMat4, DVec3};
 use raybatch::camera::{Camera, ThinLens, look_at_frame};
 use raybatch::manifest::{CameraDesc, SamplerDesc, SamplerKind};
-use raybatch::mesh::{Geometry, Instance, MeshFile};
+use raybatch::mesh::{Geometry, MeshFile};
 use raybatch::sampler::Sampler;
 use raybatch::scene::Grouping;
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry, procedural};
@@ -20,14 +20,7 @@ use std::sync::Arc;
 
 /// The scene of one procedural mesh, placed as it is.
 fn mesh_scene(mesh: Geometry) -> Scene {
-    let mesh = Arc::new(MeshFile {
-        geometries: vec![mesh],
-        instances: vec![Instance {
-            geometry: 0,
-            transform: DMat4::IDENTITY,
-        }],
-        warnings: Vec::new(),
-    });
+    let mesh = Arc::new(MeshFile::one_geometry(mesh));
     let mut geometry = SceneGeometry::default();
     geometry
         .add_mesh(&mesh, DMat4::IDENTITY, "procedural".as_ref())

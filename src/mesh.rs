@@ -66,6 +66,18 @@ pub struct MeshFile {
 }
 
 impl MeshFile {
+    /// A file of one geometry, placed as it is (one instance, identity transform).
+    pub fn one_geometry(geometry: Geometry) -> MeshFile {
+        MeshFile {
+            geometries: vec![geometry],
+            instances: vec![Instance {
+                geometry: 0,
+                transform: DMat4::IDENTITY,
+            }],
+            warnings: Vec::new(),
+        }
+    }
+
     /// Triangles once every instance is placed.
     pub fn triangle_count(&self) -> usize {
         self.instances

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use glam::{DMat4, DVec3};
 use raybatch::embree::EmbreeScene;
-use raybatch::mesh::{Instance, MeshFile};
+use raybatch::mesh::MeshFile;
 use raybatch::scene::Tracer;
 use raybatch::{Ray, Scene, SceneGeometry, procedural};
 use serde_json::Value;
@@ -82,14 +82,7 @@ fn the_embree_backend_renders_the_canonical_scene_exactly() {
 
 #[test]
 fn embree_in_robust_mode_agrees_that_nothing_leaks() {
-    let mesh = Arc::new(MeshFile {
-        geometries: vec![procedural::icosphere(3)],
-        instances: vec![Instance {
-            geometry: 0,
-            transform: DMat4::IDENTITY,
-        }],
-        warnings: Vec::new(),
-    });
+    let mesh = Arc::new(MeshFile::one_geometry(procedural::icosphere(3)));
     let mut geometry = SceneGeometry::default();
     let transform =
         DMat4::from_translation(DVec3::new(0.3, -1.1, 2.0)) * DMat4::from_scale(DVec3::splat(3.7));

@@ -308,14 +308,7 @@ fn instances_small_and_large_are_placed_where_float64_puts_them_in_order() {
         let mut g = grid(n);
         g.positions[far[0]] = [1e30, 0.0, 0.0];
         g.positions[far[1]] = [2e30, 0.0, 0.0];
-        let bad = Arc::new(MeshFile {
-            geometries: vec![g],
-            instances: vec![Instance {
-                geometry: 0,
-                transform: DMat4::IDENTITY,
-            }],
-            warnings: Vec::new(),
-        });
+        let bad = Arc::new(MeshFile::one_geometry(g));
         let error = SceneGeometry::default()
             .add_mesh(&bad, DMat4::IDENTITY, "far".as_ref())
             .unwrap_err()

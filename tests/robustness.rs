@@ -7,7 +7,7 @@ use std::sync::Arc;
 use glam::{DMat4, DVec3};
 use raybatch::bvh::{BuildPreset, Bvh};
 use raybatch::collapse::LeafCost;
-use raybatch::mesh::{Geometry, Instance, MeshFile};
+use raybatch::mesh::{Geometry, MeshFile};
 use raybatch::procedural;
 use raybatch::scene::{Grouping, Tracer};
 use raybatch::sphere::Sphere;
@@ -15,14 +15,7 @@ use raybatch::triangle::{self, ShearedRay};
 use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry};
 
 fn placed(geometry: &Geometry, transform: DMat4) -> SceneGeometry {
-    let mesh = Arc::new(MeshFile {
-        geometries: vec![geometry.clone()],
-        instances: vec![Instance {
-            geometry: 0,
-            transform: DMat4::IDENTITY,
-        }],
-        warnings: Vec::new(),
-    });
+    let mesh = Arc::new(MeshFile::one_geometry(geometry.clone()));
     let mut scene = SceneGeometry::default();
     scene.add_mesh(&mesh, transform, "test".as_ref()).unwrap();
     scene

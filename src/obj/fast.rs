@@ -27,10 +27,9 @@
 
 use std::ops::Range;
 
-use glam::DMat4;
 use rayon::prelude::*;
 
-use crate::mesh::{Geometry, Instance, MeshFile};
+use crate::mesh::{Geometry, MeshFile};
 
 /// Bytes per chunk, about (chunks end at line ends).
 const CHUNK: usize = 1 << 20;
@@ -775,7 +774,7 @@ fn assemble_one_object(chunks: &[Chunk], vertices: usize) -> MeshFile {
                 }
             }
         });
-    one_geometry(Geometry {
+    MeshFile::one_geometry(Geometry {
         positions,
         triangles,
     })
@@ -836,7 +835,7 @@ fn assemble_in_order(chunks: &[Chunk], vertices: usize) -> MeshFile {
             faces_in_object = 0;
         }
     }
-    one_geometry(geometry)
+    MeshFile::one_geometry(geometry)
 }
 
 /// Every position read, in file order.
@@ -845,18 +844,6 @@ fn all_positions(chunks: &[Chunk]) -> Vec<[f32; 3]> {
         .iter()
         .flat_map(|c| c.positions.iter().copied())
         .collect()
-}
-
-/// A file of one geometry, placed as it is.
-fn one_geometry(geometry: Geometry) -> MeshFile {
-    MeshFile {
-        geometries: vec![geometry],
-        instances: vec![Instance {
-            geometry: 0,
-            transform: DMat4::IDENTITY,
-        }],
-        warnings: Vec::new(),
-    }
 }
 
 #[cfg(test)]

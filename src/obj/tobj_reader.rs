@@ -3,10 +3,8 @@
 use std::io::Cursor;
 use std::path::Path;
 
-use glam::DMat4;
-
 use crate::error::MeshError;
-use crate::mesh::{Geometry, Instance, MeshFile};
+use crate::mesh::{Geometry, MeshFile};
 
 pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
     let options = tobj::LoadOptions {
@@ -55,14 +53,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
             }
         }
     }
-    Ok(MeshFile {
-        geometries: vec![geometry],
-        instances: vec![Instance {
-            geometry: 0,
-            transform: DMat4::IDENTITY,
-        }],
-        warnings: Vec::new(),
-    })
+    Ok(MeshFile::one_geometry(geometry))
 }
 
 fn describe(error: &tobj::LoadError) -> String {
