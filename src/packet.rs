@@ -262,8 +262,24 @@ impl Pacing {
 #[repr(C, align(64))]
 struct Rows([[f32; 8]; ROWS]);
 
-impl Rows {
-    const ZERO: Rows = Rows([[0.0; 8]; ROWS]);
+/// A packet's per-ray values, set up once per packet by [`traverse`].
+#[repr(C)]
+struct RayRows {
+    origin: [Rows; 3],
+    /// Reciprocal directions for the near planes, and rounded up for the far ones.
+    inv: [Rows; 3],
+    inv_far: [Rows; 3],
+    /// Each ray's shear, for the watertight triangle test.
+    shear: [Rows; 3],
+    tmin: Rows,
+    /// The bound a box's entry must stay below: the ray's nearest hit so far, or its
+    /// `tmax`; −∞ once the ray is done or in lanes past the packet's rays.
+    t_box: Rows,
+    /// The bound its triangle distances must stay below (`t_triangle`).
+    t_tri: Rows,
+    /// Each ray's axes `k` (`simd::ray_constants`).
+    axes: [[usize; 3]; PACKET],
+    nearest: [Nearest; PACKET],
 }
 
 /// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
@@ -426,18 +442,10 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
     let n = rays.len();
     let mut visits = Visits::default();
     // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
-    // never hit (their tmax is −∞).
-    let mut origin = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
-    let mut inv = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
-    let mut inv_far = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
-    let mut tmin = Rows::ZERO;
-    let mut t_box = Rows::ZERO;
-    // For the row test: each ray's shear, and the bound its triangle distances must stay
-    // below (`t_triangle`).
-    let mut shear_rows = [Rows::ZERO, Rows::ZERO, Rows::ZERO];
-    let mut t_tri = Rows::ZERO;
-    let mut axes = [[0usize; 3]; PACKET];
-    let mut nearest = [Nearest::before(f32::NEG_INFINITY); PACKET];
+    // never hit (their tmax is −∞). Written whole below before any read: zeroing them
+    // first cost every packet a 4 kB memset (DEVELOPERS.md).
+    let mut storage = MaybeUninit::<RayRows>::uninit();
+    let fill = storage.as_mut_ptr();
     // The rows whose rays share their axes `k` (as camera rays nearly always do), which
     // the row test needs.
     let mut shared_axes = [false; ROWS];
@@ -450,28 +458,48 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
     for r in 0..ROWS {
         // SAFETY: AVX2 is enabled where `trace` inlines.
         let row = unsafe { row_constants(std::array::from_fn(|l| &rays[(r * 8 + l).min(n - 1)])) };
-        let store = |rows: &mut Rows, x: __m256| {
-            // SAFETY: rows are 32-byte aligned arrays of eight floats.
-            unsafe { _mm256_store_ps(rows.0[r].as_mut_ptr(), x) }
+        // SAFETY: `rows` points into `storage`, and rows are 32-byte aligned arrays of
+        // eight floats; only raw places are formed, so nothing unwritten is referenced.
+        let store = |rows: *mut Rows, x: __m256| unsafe {
+            _mm256_store_ps((&raw mut (*rows).0[r]).cast::<f32>(), x)
         };
-        for a in 0..3 {
-            store(&mut origin[a], row.origin[a]);
-            store(&mut inv[a], row.inv[a]);
-            store(&mut inv_far[a], row.inv_far[a]);
-            store(&mut shear_rows[a], row.shear[a]);
-        }
-        store(&mut tmin, row.tmin);
-        for l in 0..8 {
-            let k = r * 8 + l;
-            axes[k] = row.axes(l);
-            if k < n {
-                nearest[k] = Nearest::before(rays[k].tmax);
+        let row_axes: [[usize; 3]; 8] = std::array::from_fn(|l| row.axes(l));
+        shared_axes[r] = row_axes.iter().all(|&k| k == row_axes[0]);
+        // SAFETY (this block): `fill` points to `storage`; each place is written, not read.
+        unsafe {
+            for a in 0..3 {
+                store(&raw mut (*fill).origin[a], row.origin[a]);
+                store(&raw mut (*fill).inv[a], row.inv[a]);
+                store(&raw mut (*fill).inv_far[a], row.inv_far[a]);
+                store(&raw mut (*fill).shear[a], row.shear[a]);
             }
-            t_box.0[r][l] = nearest[k].horizon();
-            t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
+            store(&raw mut (*fill).tmin, row.tmin);
+            for (l, &axes) in row_axes.iter().enumerate() {
+                let k = r * 8 + l;
+                let nearest = Nearest::before(if k < n {
+                    rays[k].tmax
+                } else {
+                    f32::NEG_INFINITY
+                });
+                (*fill).axes[k] = axes;
+                (*fill).nearest[k] = nearest;
+                (*fill).t_box.0[r][l] = nearest.horizon();
+                (*fill).t_tri.0[r][l] = t_triangle::<ANY>(nearest);
+            }
         }
-        shared_axes[r] = axes[r * 8..r * 8 + 8].iter().all(|&k| k == axes[r * 8]);
     }
+    // SAFETY: the loop above wrote every field, every row and every ray of `storage`.
+    let RayRows {
+        origin,
+        inv,
+        inv_far,
+        shear: shear_rows,
+        tmin,
+        t_box,
+        t_tri,
+        axes,
+        nearest,
+    } = unsafe { storage.assume_init_mut() };
     // The same for pairs of rows, which the sixteen-lane row test needs.
     let shared_pairs: [bool; ROWS / 2] = std::array::from_fn(|pair| {
         let r = 2 * pair;
@@ -702,12 +730,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     // floats on a 64-byte boundary; AVX-512F is enabled where `trace`
                     // inlines.
                     let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
-                    let group =
-                        GroupLanes::read([&origin, &inv, &inv_far], (near, far), pair_lanes);
+                    let group = GroupLanes::read([origin, inv, inv_far], (near, far), pair_lanes);
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8
                     // floats; AVX-512F is enabled where `trace` inlines.
                     let mut hits = unsafe {
-                        let (tmin, tmax) = (pair_lanes(&tmin), pair_lanes(&t_box));
+                        let (tmin, tmax) = (pair_lanes(tmin), pair_lanes(t_box));
                         simd512::leaf_box_test(&group, planes, slot, tmin, tmax)
                     };
                     visits.entries += hits.count_ones();
@@ -722,11 +749,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 for r in 0..ROWS {
                     // SAFETY: rows are 32-byte aligned arrays of eight floats.
                     let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
-                    let group = GroupLanes::read([&origin, &inv, &inv_far], (near, far), lane);
+                    let group = GroupLanes::read([origin, inv, inv_far], (near, far), lane);
                     // The single-ray test, the leaf's box against eight rays.
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
                     let (_, entered) = unsafe {
-                        slab_test! { &group, planes, slot, lane(&tmin), lane(&t_box),
+                        slab_test! { &group, planes, slot, lane(tmin), lane(t_box),
                         broadcast_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps,
                         _mm256_cmp_ps }
                     };
