@@ -7,6 +7,8 @@
 //! {"type": "normal"}
 //! ```
 
+use glam::DVec3;
+
 use crate::manifest::Rgb;
 use crate::ray::Ray;
 use crate::scene::{Hit, Tracer};
@@ -108,12 +110,9 @@ pub struct NormalIntegrator {
 }
 
 impl NormalIntegrator {
-    fn of<T: Tracer>(&self, scene: &T, ray: &Ray, hit: Option<Hit>) -> Rgb {
-        match hit {
-            Some(hit) => {
-                let n = scene.normal(ray, &hit);
-                [0.5 * (n.x + 1.0), 0.5 * (n.y + 1.0), 0.5 * (n.z + 1.0)]
-            }
+    fn of(&self, normal: Option<DVec3>) -> Rgb {
+        match normal {
+            Some(n) => [0.5 * (n.x + 1.0), 0.5 * (n.y + 1.0), 0.5 * (n.z + 1.0)],
             None => self.background,
         }
     }
@@ -122,10 +121,22 @@ impl NormalIntegrator {
 impl Integrator for NormalIntegrator {
     #[inline]
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
-        self.of(scene, ray, scene.closest_hit(ray))
+        self.of(scene.closest_hit(ray).map(|hit| scene.normal(ray, &hit)))
     }
 
+    /// Asks for the normals of a run's hits at once, which a tracer may compute
+    /// several at a time.
     fn values<T: Tracer>(&self, scene: &T, rays: &[Ray], out: &mut [Rgb]) {
-        closest_hits(scene, rays, |i, hit| out[i] = self.of(scene, &rays[i], hit));
+        for (rays, out) in rays.chunks(RUN).zip(out.chunks_mut(RUN)) {
+            let mut hits = [None; RUN];
+            let hits = &mut hits[..rays.len()];
+            scene.closest_hits(rays, hits);
+            for (out, hit) in out.iter_mut().zip(&*hits) {
+                if hit.is_none() {
+                    *out = self.background;
+                }
+            }
+            scene.normals(rays, hits, |i, normal| out[i] = self.of(Some(normal)));
+        }
     }
 }

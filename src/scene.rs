@@ -264,6 +264,17 @@ pub trait Tracer: Sync {
     /// `normalize(cross(v1 − v0, v2 − v0))`.
     fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3;
 
+    /// [`Tracer::normal`] of every hit: `found(i, normal)` for `hits[i]`, a hit of
+    /// `rays[i]`, in no set order; nothing for a `None`. Tracers may compute several at
+    /// once; the bits are the same.
+    fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], mut found: impl FnMut(usize, DVec3)) {
+        for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
+            if let Some(hit) = hit {
+                found(i, self.normal(ray, hit));
+            }
+        }
+    }
+
     /// The index in [`SceneGeometry::triangles`] of the triangle stored at `slot`.
     fn triangle_id(&self, slot: u32) -> u32;
 
@@ -942,6 +953,70 @@ impl Scene {
         }
     }
 
+    /// [`Tracer::normals`]: with AVX2, triangles' normals four at a time
+    /// ([`triangle::geometric_normals4`]), where each one alone waited on its own square
+    /// root and division.
+    #[inline]
+    pub fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], mut found: impl FnMut(usize, DVec3)) {
+        #[cfg(target_arch = "x86_64")]
+        if self.avx2 {
+            // SAFETY: `avx2` is set only when the CPU has it.
+            unsafe { self.normals_avx2(rays, hits, found) };
+            return;
+        }
+        for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
+            if let Some(hit) = hit {
+                found(i, self.normal(ray, hit));
+            }
+        }
+    }
+
+    /// [`Scene::normals`] compiled for AVX2.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn normals_avx2(
+        &self,
+        rays: &[Ray],
+        hits: &[Option<Hit>],
+        mut found: impl FnMut(usize, DVec3),
+    ) {
+        // Triangle hits waiting to be taken four at a time: their indices and vertices.
+        let mut waiting = [0usize; 4];
+        let mut vertices = [[[0f32; 3]; 3]; 4];
+        let mut count = 0;
+        for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
+            let Some(hit) = hit else { continue };
+            let Primitive::Triangle { slot, .. } = hit.primitive else {
+                found(i, self.normal(ray, hit));
+                continue;
+            };
+            let (block, lane) = self.slot(slot);
+            waiting[count] = i;
+            vertices[count] = [0, 1, 2].map(|k| block.vertex(lane, k));
+            count += 1;
+            if count == 4 {
+                // SAFETY: AVX2 is enabled here.
+                let normals = unsafe { triangle::geometric_normals4(vertices) };
+                for (&i, normal) in waiting.iter().zip(normals) {
+                    found(i, normal);
+                }
+                count = 0;
+            }
+        }
+        // The last few; the lanes past them hold earlier triangles (or zeros) and are
+        // left out.
+        if count > 0 {
+            // SAFETY: AVX2 is enabled here.
+            let normals = unsafe { triangle::geometric_normals4(vertices) };
+            for (&i, normal) in waiting[..count].iter().zip(normals) {
+                found(i, normal);
+            }
+        }
+    }
+
     fn slot(&self, slot: u32) -> (&TriangleBlock, usize) {
         let block = &self.triangles.blocks[slot as usize / BLOCK];
         (block, slot as usize % BLOCK)
@@ -974,6 +1049,10 @@ impl Tracer for Scene {
 
     fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
         Scene::normal(self, ray, hit)
+    }
+
+    fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], found: impl FnMut(usize, DVec3)) {
+        Scene::normals(self, rays, hits, found);
     }
 
     fn triangle_id(&self, slot: u32) -> u32 {

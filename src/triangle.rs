@@ -243,6 +243,59 @@ pub fn geometric_normal(v0: [f32; 3], v1: [f32; 3], v2: [f32; 3]) -> glam::DVec3
     (p1 - p0).cross(p2 - p0).normalize()
 }
 
+/// [`geometric_normal`] of four triangles at once, a triangle per float64 lane: glam's
+/// operations in glam's order (`cross`, then `dot`, square root, `1 / length` and the
+/// product; nothing fused), so each lane's bits are `geometric_normal`'s.
+///
+/// # Safety
+/// Only from a function with AVX enabled.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(crate) unsafe fn geometric_normals4(triangles: [[[f32; 3]; 3]; 4]) -> [glam::DVec3; 4] {
+    use std::arch::x86_64::*;
+    // SAFETY (this block): AVX is enabled in the caller; stores go to local arrays.
+    unsafe {
+        // Coordinate `$c` of vertex `$k` of the four triangles, widened exactly.
+        macro_rules! coordinate {
+            ($k:expr, $c:expr) => {
+                _mm256_cvtps_pd(_mm_setr_ps(
+                    triangles[0][$k][$c],
+                    triangles[1][$k][$c],
+                    triangles[2][$k][$c],
+                    triangles[3][$k][$c],
+                ))
+            };
+        }
+        let (x0, y0, z0) = (coordinate!(0, 0), coordinate!(0, 1), coordinate!(0, 2));
+        // The edges `v1 − v0` and `v2 − v0`.
+        let (ax, ay, az) = (
+            _mm256_sub_pd(coordinate!(1, 0), x0),
+            _mm256_sub_pd(coordinate!(1, 1), y0),
+            _mm256_sub_pd(coordinate!(1, 2), z0),
+        );
+        let (bx, by, bz) = (
+            _mm256_sub_pd(coordinate!(2, 0), x0),
+            _mm256_sub_pd(coordinate!(2, 1), y0),
+            _mm256_sub_pd(coordinate!(2, 2), z0),
+        );
+        // `a.cross(b)`: (a.y·b.z − b.y·a.z, a.z·b.x − b.z·a.x, a.x·b.y − b.x·a.y).
+        let cx = _mm256_sub_pd(_mm256_mul_pd(ay, bz), _mm256_mul_pd(by, az));
+        let cy = _mm256_sub_pd(_mm256_mul_pd(az, bx), _mm256_mul_pd(bz, ax));
+        let cz = _mm256_sub_pd(_mm256_mul_pd(ax, by), _mm256_mul_pd(bx, ay));
+        // `c.normalize()`: c · (1 / sqrt((x·x + y·y) + z·z)).
+        let dot = _mm256_add_pd(
+            _mm256_add_pd(_mm256_mul_pd(cx, cx), _mm256_mul_pd(cy, cy)),
+            _mm256_mul_pd(cz, cz),
+        );
+        let recip = _mm256_div_pd(_mm256_set1_pd(1.0), _mm256_sqrt_pd(dot));
+        let mut n = [[0f64; 4]; 3];
+        _mm256_storeu_pd(n[0].as_mut_ptr(), _mm256_mul_pd(cx, recip));
+        _mm256_storeu_pd(n[1].as_mut_ptr(), _mm256_mul_pd(cy, recip));
+        _mm256_storeu_pd(n[2].as_mut_ptr(), _mm256_mul_pd(cz, recip));
+        std::array::from_fn(|i| glam::DVec3::new(n[0][i], n[1][i], n[2][i]))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -436,5 +489,54 @@ mod tests {
             }
         }
         assert!(rays > 3000);
+    }
+    /// Four triangles at a time must give `geometric_normal`'s bits in every lane: random
+    /// triangles at scales from 2⁻⁶⁰ to 2⁶⁰, slivers, and degenerate ones (a repeated
+    /// vertex or all three in a line, whose normal is NaN either way).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn normals_four_at_a_time_are_geometric_normal_bit_for_bit() {
+        #[target_feature(enable = "avx")]
+        unsafe fn four(triangles: [[[f32; 3]; 3]; 4]) -> [glam::DVec3; 4] {
+            // SAFETY: AVX is enabled here.
+            unsafe { geometric_normals4(triangles) }
+        }
+        if !std::arch::is_x86_feature_detected!("avx") {
+            eprintln!("skipped: this CPU has no AVX, and the four-lane normals are not used");
+            return;
+        }
+        let mut random = crate::test_random::XorShift::new(0x5eed_4041);
+        let (mut finite, mut nan) = (0, 0);
+        for case in 0..50_000 {
+            let scale = 2f32.powi(random.below(121) as i32 - 60);
+            let point = |random: &mut crate::test_random::XorShift| {
+                [0; 3].map(|_| (random.unit_f32() - 0.5) * scale)
+            };
+            let triangles: [[[f32; 3]; 3]; 4] = std::array::from_fn(|_| {
+                let [a, b, c] = [point(&mut random), point(&mut random), point(&mut random)];
+                match random.below(8) {
+                    // A repeated vertex.
+                    0 => [a, b, a],
+                    // Three points in a line: b halfway between a and c where exact.
+                    1 => [a, std::array::from_fn(|i| a[i] + (c[i] - a[i]) * 0.5), c],
+                    // A sliver: c one step from b.
+                    2 => [a, b, b.map(|x| f32::from_bits(x.to_bits() + 1))],
+                    _ => [a, b, c],
+                }
+            });
+            // SAFETY: the CPU has AVX (checked above).
+            let lanes = unsafe { four(triangles) };
+            for (lane, (t, n)) in triangles.iter().zip(lanes).enumerate() {
+                let expected = geometric_normal(t[0], t[1], t[2]);
+                let bits = |v: glam::DVec3| v.to_array().map(f64::to_bits);
+                assert_eq!(bits(n), bits(expected), "case {case}, lane {lane}: {t:?}");
+                finite += usize::from(expected.is_finite());
+                nan += usize::from(expected.is_nan());
+            }
+        }
+        assert!(
+            finite > 120_000 && nan > 20_000,
+            "{finite} finite, {nan} NaN"
+        );
     }
 }
