@@ -983,9 +983,8 @@ impl Scene {
         hits: &[Option<Hit>],
         mut found: impl FnMut(usize, DVec3),
     ) {
-        // Triangle hits waiting to be taken four at a time: their indices and vertices.
-        let mut waiting = [0usize; 4];
-        let mut vertices = [[[0f32; 3]; 3]; 4];
+        // Triangle hits waiting to be taken four at a time: their indices and slots.
+        let (mut waiting, mut slots) = ([0usize; 4], [0u32; 4]);
         let mut count = 0;
         for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
             let Some(hit) = hit else { continue };
@@ -993,24 +992,23 @@ impl Scene {
                 found(i, self.normal(ray, hit));
                 continue;
             };
-            let (block, lane) = self.slot(slot);
-            waiting[count] = i;
-            vertices[count] = [0, 1, 2].map(|k| block.vertex(lane, k));
+            (waiting[count], slots[count]) = (i, slot);
             count += 1;
             if count == 4 {
                 // SAFETY: AVX2 is enabled here.
-                let normals = unsafe { triangle::geometric_normals4(vertices) };
+                let normals = unsafe { triangle::geometric_normals4(slots.map(|s| self.slot(s))) };
                 for (&i, normal) in waiting.iter().zip(normals) {
                     found(i, normal);
                 }
                 count = 0;
             }
         }
-        // The last few; the lanes past them hold earlier triangles (or zeros) and are
-        // left out.
+        // The last few, the lanes past them repeating the first.
         if count > 0 {
+            let first = slots[0];
+            slots[count..].fill(first);
             // SAFETY: AVX2 is enabled here.
-            let normals = unsafe { triangle::geometric_normals4(vertices) };
+            let normals = unsafe { triangle::geometric_normals4(slots.map(|s| self.slot(s))) };
             for (&i, normal) in waiting[..count].iter().zip(normals) {
                 found(i, normal);
             }

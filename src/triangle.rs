@@ -243,26 +243,31 @@ pub fn geometric_normal(v0: [f32; 3], v1: [f32; 3], v2: [f32; 3]) -> glam::DVec3
     (p1 - p0).cross(p2 - p0).normalize()
 }
 
-/// [`geometric_normal`] of four triangles at once, a triangle per float64 lane: glam's
-/// operations in glam's order (`cross`, then `dot`, square root, `1 / length` and the
-/// product; nothing fused), so each lane's bits are `geometric_normal`'s.
+/// [`geometric_normal`] of four triangles at once, each given as a block and lane, a
+/// triangle per float64 lane: glam's operations in glam's order (`cross`, then `dot`,
+/// square root, `1 / length` and the product; nothing fused), so each lane's bits are
+/// `geometric_normal`'s. The vertices are read from the blocks themselves: copied to the
+/// stack first, they were read back wider than written and waited on every copy.
 ///
 /// # Safety
 /// Only from a function with AVX enabled.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-pub(crate) unsafe fn geometric_normals4(triangles: [[[f32; 3]; 3]; 4]) -> [glam::DVec3; 4] {
+pub(crate) unsafe fn geometric_normals4(
+    triangles: [(&TriangleBlock, usize); 4],
+) -> [glam::DVec3; 4] {
     use std::arch::x86_64::*;
+    let [(b0, l0), (b1, l1), (b2, l2), (b3, l3)] = triangles;
     // SAFETY (this block): AVX is enabled in the caller; stores go to local arrays.
     unsafe {
         // Coordinate `$c` of vertex `$k` of the four triangles, widened exactly.
         macro_rules! coordinate {
             ($k:expr, $c:expr) => {
                 _mm256_cvtps_pd(_mm_setr_ps(
-                    triangles[0][$k][$c],
-                    triangles[1][$k][$c],
-                    triangles[2][$k][$c],
-                    triangles[3][$k][$c],
+                    b0.v[$k][$c][l0],
+                    b1.v[$k][$c][l1],
+                    b2.v[$k][$c][l2],
+                    b3.v[$k][$c][l3],
                 ))
             };
         }
@@ -497,7 +502,7 @@ mod tests {
     #[test]
     fn normals_four_at_a_time_are_geometric_normal_bit_for_bit() {
         #[target_feature(enable = "avx")]
-        unsafe fn four(triangles: [[[f32; 3]; 3]; 4]) -> [glam::DVec3; 4] {
+        unsafe fn four(triangles: [(&TriangleBlock, usize); 4]) -> [glam::DVec3; 4] {
             // SAFETY: AVX is enabled here.
             unsafe { geometric_normals4(triangles) }
         }
@@ -524,8 +529,21 @@ mod tests {
                     _ => [a, b, c],
                 }
             });
+            // The four in one block, in lanes taken in a rotated order.
+            let mut block = TriangleBlock {
+                v: [[[0.0; BLOCK]; 3]; 3],
+                ids: [0; BLOCK],
+            };
+            let lane_of = |i: usize| (i + case) % BLOCK;
+            for (i, t) in triangles.iter().enumerate() {
+                for (k, vertex) in t.iter().enumerate() {
+                    for (c, &x) in vertex.iter().enumerate() {
+                        block.v[k][c][lane_of(i)] = x;
+                    }
+                }
+            }
             // SAFETY: the CPU has AVX (checked above).
-            let lanes = unsafe { four(triangles) };
+            let lanes = unsafe { four(std::array::from_fn(|i| (&block, lane_of(i)))) };
             for (lane, (t, n)) in triangles.iter().zip(lanes).enumerate() {
                 let expected = geometric_normal(t[0], t[1], t[2]);
                 let bits = |v: glam::DVec3| v.to_array().map(f64::to_bits);
