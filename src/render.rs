@@ -98,6 +98,29 @@ impl View {
             }
             return;
         }
+        let hashes = self.pixel_hashes(pixels, y0);
+        self.rays_hashed((pixels, y0, &hashes), s, out);
+    }
+
+    /// The sampler's hashes of a group's pixels `(x, y0 + dy)` (at most [`GROUP`]), which
+    /// stay the same through the pixels' samples ([`View::rays_hashed`]).
+    #[inline]
+    pub fn pixel_hashes(&self, pixels: &[(u32, u32)], y0: u32) -> [u64; GROUP] {
+        let mut hashes = [0; GROUP];
+        if self.screen.is_none() {
+            self.sampler.pixel_hashes((pixels, y0), &mut hashes);
+        }
+        hashes
+    }
+
+    /// [`View::rays`] of a group of at most [`GROUP`] pixels, given their
+    /// [`View::pixel_hashes`].
+    pub fn rays_hashed(
+        &self,
+        (pixels, y0, hashes): (&[(u32, u32)], u32, &[u64; GROUP]),
+        s: u32,
+        out: &mut [Ray],
+    ) {
         let (mut u, mut v) = ([0.0; GROUP], [0.0; GROUP]);
         // Lens points: the centre for the `center` sampler, whose coordinates are tabled.
         let mut lens = [crate::sampler::CENTER; GROUP];
@@ -113,8 +136,9 @@ impl View {
                 // Offsets first, then coordinates: the divisions of one pixel no longer
                 // wait for its hashes, and overlap with other pixels'.
                 let lens = has_lens.then_some(&mut lens[..]);
+                let hashes = &hashes[..pixels.len()];
                 self.sampler
-                    .group((pixels, y0), s, (&mut u[..], &mut v[..]), lens);
+                    .group(hashes, s, (&mut u[..], &mut v[..]), lens);
                 for (i, &(x, dy)) in pixels.iter().enumerate() {
                     u[i] = self.camera.screen_u(x, u[i]);
                     v[i] = self.camera.screen_v(y0 + dy, v[i]);
@@ -275,8 +299,9 @@ pub fn render_with<T: Tracer, I: Integrator>(
                 continue;
             }
             let mut sums = [[0.0f64; 3]; GROUP];
+            let hashes = view.pixel_hashes(&pixels[..n], band.y0);
             for s in 0..spp {
-                view.rays(&pixels[..n], band.y0, s, &mut rays[..n]);
+                view.rays_hashed((&pixels[..n], band.y0, &hashes), s, &mut rays[..n]);
                 integrator.values(scene, &rays[..n], &mut values[..n]);
                 for (sum, value) in sums.iter_mut().zip(&values[..n]) {
                     for c in 0..3 {
@@ -317,6 +342,66 @@ mod tests {
                 }
             }
             assert!(seen.iter().all(|&c| c == 1), "{width}x{rows}: {seen:?}");
+        }
+    }
+
+    /// With several samples, the render loop hashes a group's pixels once for all of
+    /// them: each pixel must still be the mean of its own samples' values, each from
+    /// [`View::ray`] and [`Integrator::value`] alone, summed in sample order, for random
+    /// and stratified samplers, with and without a lens, at sizes that leave partial
+    /// groups.
+    #[test]
+    fn a_sampled_pixel_is_the_mean_of_its_rays_one_by_one() {
+        use crate::sphere::Sphere;
+        use crate::{Scene, SceneGeometry};
+        let scene = Scene::build(&SceneGeometry {
+            spheres: vec![Sphere {
+                center: DVec3::new(0.0, 0.5, 0.0),
+                radius: 1.4,
+            }],
+            ..SceneGeometry::default()
+        });
+        let camera = r#""camera": {"look_from": [1, 2, 3], "look_at": [0, 0.5, 0], "vfov": 50"#;
+        for (sampler, lens) in [
+            (r#"{"type": "independent", "spp": 3, "seed": 5}"#, ""),
+            (r#"{"type": "stratified", "spp": 6, "seed": 2}"#, ""),
+            (
+                r#"{"type": "independent", "spp": 4, "seed": 9}"#,
+                r#", "aperture": 0.2, "focus_distance": 3"#,
+            ),
+        ] {
+            let text = format!(
+                r#"{{"image": {{"width": 19, "height": 11}}, "output": "o.pfm", {camera}{lens}}},
+                    "sampler": {sampler}, "integrator": {{"type": "depth", "scale": 7}}}}"#
+            );
+            let manifest =
+                Manifest::parse(text.as_bytes(), std::path::Path::new("t.json")).unwrap();
+            let image = render(&scene, &manifest, &|_| {}).unwrap();
+            let crate::image::Pixels::RgbF32(floats) = &image.pixels else {
+                panic!("a PFM holds floats")
+            };
+            let view = View::new(&manifest);
+            let depth = DepthIntegrator {
+                scale: 7.0,
+                background: manifest.background,
+            };
+            let mut hits = 0;
+            for y in 0..11 {
+                for x in 0..19 {
+                    let mut sum = [0.0; 3];
+                    for s in 0..view.spp() {
+                        let value = depth.value(&scene, &view.ray(x, y, s));
+                        hits += usize::from(value != manifest.background);
+                        for c in 0..3 {
+                            sum[c] += value[c];
+                        }
+                    }
+                    let mean = sum.map(|c| (c / f64::from(view.spp())) as f32);
+                    let at = (y as usize * 19 + x as usize) * 3;
+                    assert_eq!(floats[at..at + 3], mean, "{sampler}{lens}: ({x}, {y})");
+                }
+            }
+            assert!(hits > 100, "{sampler}{lens}: {hits} hits");
         }
     }
 

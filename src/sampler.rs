@@ -75,19 +75,46 @@ impl Sampler {
         }
     }
 
-    /// [`Sampler::pixel_offset`] of sample `s` for each pixel `(x, y0 + dy)` of `pixels`,
-    /// into `(u[i], v[i])`, and with `lens`, [`Sampler::lens`] into `lens[i]`: the same
-    /// numbers, a group at a time. The stratum is found once for the group, and the loop
-    /// is compiled for AVX-512 (whose 64-bit products hash eight pixels at once) or AVX2
-    /// (four, from 32-bit products) where the CPU has it.
+    /// The hash of each pixel `(x, y0 + dy)` of `pixels`, into `out[i]`: where all of the
+    /// pixel's numbers start, for [`Sampler::group`]. A group's pixels keep theirs through
+    /// its samples, so the render loop hashes them once. Nothing for `center`.
+    pub fn pixel_hashes(&self, (pixels, y0): (&[(u32, u32)], u32), out: &mut [u64]) {
+        if self.kind == SamplerKind::Center {
+            return;
+        }
+        let out = &mut out[..pixels.len()];
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512dq")
+            && std::is_x86_feature_detected!("avx512vl")
+        {
+            // SAFETY: the CPU has these features.
+            unsafe { hashes_avx512(self.seed_hash, (pixels, y0), out) };
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2.
+            unsafe { hashes_avx2(self.seed_hash, (pixels, y0), out) };
+            return;
+        }
+        hash_pixels(self.seed_hash, (pixels, y0), out);
+    }
+
+    /// [`Sampler::pixel_offset`] of sample `s` for each pixel whose
+    /// [hash](Sampler::pixel_hashes) is `pixel_hashes[i]`, into `(u[i], v[i])`, and with
+    /// `lens`, [`Sampler::lens`] into `lens[i]`: the same numbers, a group at a time. The
+    /// stratum is found once for the group, and the loop is compiled for AVX-512 (whose
+    /// 64-bit products hash eight pixels at once) or AVX2 (four, from 32-bit products)
+    /// where the CPU has it.
     pub fn group(
         &self,
-        (pixels, y0): (&[(u32, u32)], u32),
+        pixel_hashes: &[u64],
         s: u32,
         (u, v): (&mut [f64], &mut [f64]),
         lens: Option<&mut [(f64, f64)]>,
     ) {
-        let n = pixels.len();
+        let n = pixel_hashes.len();
         let (u, v) = (&mut u[..n], &mut v[..n]);
         if self.kind == SamplerKind::Center {
             u.fill(CENTER.0);
@@ -98,9 +125,7 @@ impl Sampler {
             return;
         }
         let group = Group {
-            seed_hash: self.seed_hash,
-            pixels,
-            y0,
+            pixel_hashes,
             s,
             stratum: self.stratum(s),
         };
@@ -157,14 +182,40 @@ impl Sampler {
 
 /// A group of pixels' sample, for [`Sampler::group`].
 struct Group<'a> {
-    /// The seed's hash, from which each pixel's is made.
-    seed_hash: u64,
-    pixels: &'a [(u32, u32)],
-    y0: u32,
+    /// Each pixel's hash ([`Sampler::pixel_hashes`]).
+    pixel_hashes: &'a [u64],
     s: u32,
     /// For the stratified sampler, the sample's cell: its column and row, and the grid's
     /// columns and rows.
     stratum: Option<[f64; 4]>,
+}
+
+/// [`Sampler::pixel_hashes`] compiled for AVX-512.
+///
+/// # Safety
+/// The CPU must have AVX-512 F, DQ and VL.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl")]
+unsafe fn hashes_avx512(seed_hash: u64, pixels: (&[(u32, u32)], u32), out: &mut [u64]) {
+    hash_pixels(seed_hash, pixels, out);
+}
+
+/// [`Sampler::pixel_hashes`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn hashes_avx2(seed_hash: u64, pixels: (&[(u32, u32)], u32), out: &mut [u64]) {
+    hash_pixels(seed_hash, pixels, out);
+}
+
+/// [`Sampler::pixel_hashes`] for a random sampler, in a loop free of branches.
+#[inline(always)]
+fn hash_pixels(seed_hash: u64, (pixels, y0): (&[(u32, u32)], u32), out: &mut [u64]) {
+    for (&(x, dy), out) in pixels.iter().zip(out) {
+        *out = hash_pixel(seed_hash, x, y0 + dy);
+    }
 }
 
 /// [`Sampler::group`] for a random sampler, compiled for AVX-512.
@@ -198,29 +249,26 @@ unsafe fn group_avx2(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&
 #[inline(always)]
 fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut [(f64, f64)]>) {
     let &Group {
-        seed_hash,
-        pixels,
-        y0,
+        pixel_hashes,
         s,
         stratum,
     } = group;
-    let pixel = |&(x, dy): &(u32, u32)| hash_pixel(seed_hash, x, y0 + dy);
     // The kind chosen once, outside the loops.
     match stratum {
         Some(cell) => {
-            for ((p, u), v) in pixels.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
-                (*u, *v) = offset_in(cell, pixel(p), s);
+            for ((&p, u), v) in pixel_hashes.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
+                (*u, *v) = offset_in(cell, p, s);
             }
         }
         None => {
-            for ((p, u), v) in pixels.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
-                (*u, *v) = unit_offset(pixel(p), s);
+            for ((&p, u), v) in pixel_hashes.iter().zip(u.iter_mut()).zip(v.iter_mut()) {
+                (*u, *v) = unit_offset(p, s);
             }
         }
     }
     if let Some(lens) = lens {
-        for (p, lens) in pixels.iter().zip(lens.iter_mut()) {
-            *lens = lens_from(pixel(p), s);
+        for (&p, lens) in pixel_hashes.iter().zip(lens.iter_mut()) {
+            *lens = lens_from(p, s);
         }
     }
 }
@@ -324,15 +372,18 @@ mod tests {
                     let (mut u, mut v, mut lens) = ([9.0; 64], [9.0; 64], [(9.0, 9.0); 64]);
                     let (mut plain_u, mut plain_v) = ([9.0; 64], [9.0; 64]);
                     let mut plain_lens = [(9.0, 9.0); 64];
-                    let pixels = (&pixels[..n], 7);
-                    sampler.group(pixels, s, (&mut u, &mut v), Some(&mut lens));
+                    let mut hashes = [0u64; 64];
+                    sampler.pixel_hashes((&pixels[..n], 7), &mut hashes);
+                    let hashes = &hashes[..n];
+                    sampler.group(hashes, s, (&mut u, &mut v), Some(&mut lens));
                     let (mut u2, mut v2) = ([9.0; 64], [9.0; 64]);
-                    sampler.group(pixels, s, (&mut u2, &mut v2), None);
+                    sampler.group(hashes, s, (&mut u2, &mut v2), None);
                     if kind != SamplerKind::Center {
+                        let mut plain_hashes = [0u64; 64];
+                        hash_pixels(sampler.seed_hash, (&pixels[..n], 7), &mut plain_hashes);
+                        assert_eq!(hashes, &plain_hashes[..n], "{kind:?}, {n} pixels");
                         let group = Group {
-                            seed_hash: sampler.seed_hash,
-                            pixels: pixels.0,
-                            y0: 7,
+                            pixel_hashes: &plain_hashes[..n],
                             s,
                             stratum: sampler.stratum(s),
                         };
@@ -343,7 +394,7 @@ mod tests {
                             Some(&mut plain_lens[..n]),
                         );
                     }
-                    for (i, &(x, dy)) in pixels.0.iter().enumerate() {
+                    for (i, &(x, dy)) in pixels[..n].iter().enumerate() {
                         let offset = sampler.pixel_offset(x, 7 + dy, s);
                         let point = sampler.lens(x, 7 + dy, s);
                         let bits = |(a, b): (f64, f64)| (a.to_bits(), b.to_bits());
