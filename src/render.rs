@@ -102,8 +102,11 @@ impl View {
         self.rays_hashed((pixels, y0, &hashes), s, out);
     }
 
-    /// The sampler's hashes of a group's pixels `(x, y0 + dy)` (at most [`GROUP`]), which
-    /// stay the same through the pixels' samples ([`View::rays_hashed`]).
+    /// The sampler's hashes of a group's pixels `(x, y0 + dy)`, which stay the same
+    /// through the pixels' samples ([`View::rays_hashed`]).
+    ///
+    /// # Panics
+    /// If `pixels` holds more than [`GROUP`].
     #[inline]
     pub fn pixel_hashes(&self, pixels: &[(u32, u32)], y0: u32) -> [u64; GROUP] {
         let mut hashes = [0; GROUP];
@@ -113,8 +116,10 @@ impl View {
         hashes
     }
 
-    /// [`View::rays`] of a group of at most [`GROUP`] pixels, given their
-    /// [`View::pixel_hashes`].
+    /// [`View::rays`] of a group of pixels, given their [`View::pixel_hashes`].
+    ///
+    /// # Panics
+    /// If `pixels` holds more than [`GROUP`].
     pub fn rays_hashed(
         &self,
         (pixels, y0, hashes): (&[(u32, u32)], u32, &[u64; GROUP]),

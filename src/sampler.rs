@@ -78,6 +78,9 @@ impl Sampler {
     /// The hash of each pixel `(x, y0 + dy)` of `pixels`, into `out[i]`: where all of the
     /// pixel's numbers start, for [`Sampler::group`]. A group's pixels keep theirs through
     /// its samples, so the render loop hashes them once. Nothing for `center`.
+    ///
+    /// # Panics
+    /// If `out` is shorter than `pixels`.
     pub fn pixel_hashes(&self, (pixels, y0): (&[(u32, u32)], u32), out: &mut [u64]) {
         if self.kind == SamplerKind::Center {
             return;

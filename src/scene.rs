@@ -954,7 +954,7 @@ impl Scene {
     }
 
     /// [`Tracer::normals`]: with AVX2, triangles' normals four at a time
-    /// ([`triangle::geometric_normals4`]), where each one alone waited on its own square
+    /// (`triangle::geometric_normals4`), where each one alone waited on its own square
     /// root and division.
     #[inline]
     pub fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], mut found: impl FnMut(usize, DVec3)) {
