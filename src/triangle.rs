@@ -495,6 +495,7 @@ mod tests {
         }
         assert!(rays > 3000);
     }
+
     /// Four triangles at a time must give `geometric_normal`'s bits in every lane: random
     /// triangles at scales from 2⁻⁶⁰ to 2⁶⁰, slivers, and degenerate ones (a repeated
     /// vertex or all three in a line, whose normal is NaN either way).
