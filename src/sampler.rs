@@ -26,6 +26,36 @@ pub struct Sampler {
     seed_hash: u64,
     /// Stratified grid: `columns × rows = spp`, as square as `spp`'s divisors allow.
     columns: u32,
+    /// The widest build of the group loops this CPU runs, chosen once.
+    loops: Loops,
+}
+
+/// Which build of the group loops ([`Sampler::pixel_hashes`], [`Sampler::group`]) runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Loops {
+    /// AVX-512 F, DQ and VL: 64-bit products eight pixels at a time.
+    Avx512,
+    /// AVX2: four at a time, from 32-bit products.
+    Avx2,
+    Plain,
+}
+
+impl Loops {
+    fn for_this_cpu() -> Loops {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512dq")
+                && std::is_x86_feature_detected!("avx512vl")
+            {
+                return Loops::Avx512;
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                return Loops::Avx2;
+            }
+        }
+        Loops::Plain
+    }
 }
 
 impl Sampler {
@@ -41,6 +71,7 @@ impl Sampler {
             spp,
             seed_hash: mix(desc.seed ^ 0x9e37_79b9_7f4a_7c15),
             columns,
+            loops: Loops::for_this_cpu(),
         }
     }
 
@@ -86,22 +117,15 @@ impl Sampler {
             return;
         }
         let out = &mut out[..pixels.len()];
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512dq")
-            && std::is_x86_feature_detected!("avx512vl")
-        {
-            // SAFETY: the CPU has these features.
-            unsafe { hashes_avx512(self.seed_hash, (pixels, y0), out) };
-            return;
+        match self.loops {
+            // SAFETY: `loops` names only features the CPU has.
+            #[cfg(target_arch = "x86_64")]
+            Loops::Avx512 => unsafe { hashes_avx512(self.seed_hash, (pixels, y0), out) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            Loops::Avx2 => unsafe { hashes_avx2(self.seed_hash, (pixels, y0), out) },
+            _ => hash_pixels(self.seed_hash, (pixels, y0), out),
         }
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2.
-            unsafe { hashes_avx2(self.seed_hash, (pixels, y0), out) };
-            return;
-        }
-        hash_pixels(self.seed_hash, (pixels, y0), out);
     }
 
     /// [`Sampler::pixel_offset`] of sample `s` for each pixel whose
@@ -132,22 +156,15 @@ impl Sampler {
             s,
             stratum: self.stratum(s),
         };
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512dq")
-            && std::is_x86_feature_detected!("avx512vl")
-        {
-            // SAFETY: the CPU has these features.
-            unsafe { group_avx512(&group, u, v, lens) };
-            return;
+        match self.loops {
+            // SAFETY: `loops` names only features the CPU has.
+            #[cfg(target_arch = "x86_64")]
+            Loops::Avx512 => unsafe { group_avx512(&group, u, v, lens) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            Loops::Avx2 => unsafe { group_avx2(&group, u, v, lens) },
+            _ => group_numbers(&group, u, v, lens),
         }
-        #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2.
-            unsafe { group_avx2(&group, u, v, lens) };
-            return;
-        }
-        group_numbers(&group, u, v, lens);
     }
 
     /// The pixel offset of sample `s` of a random sampler, from its pixel's hash.

@@ -267,12 +267,8 @@ pub trait Tracer: Sync {
     /// [`Tracer::normal`] of every hit: `found(i, normal)` for `hits[i]`, a hit of
     /// `rays[i]`, in no set order; nothing for a `None`. Tracers may compute several at
     /// once; the bits are the same.
-    fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], mut found: impl FnMut(usize, DVec3)) {
-        for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
-            if let Some(hit) = hit {
-                found(i, self.normal(ray, hit));
-            }
-        }
+    fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], found: impl FnMut(usize, DVec3)) {
+        normals_one_by_one(self, rays, hits, found);
     }
 
     /// The index in [`SceneGeometry::triangles`] of the triangle stored at `slot`.
@@ -280,6 +276,20 @@ pub trait Tracer: Sync {
 
     /// Primitive counts and memory of what was built.
     fn counts(&self) -> SceneCounts;
+}
+
+/// [`Tracer::normals`] by [`Tracer::normal`], one hit at a time.
+pub fn normals_one_by_one<T: Tracer + ?Sized>(
+    tracer: &T,
+    rays: &[Ray],
+    hits: &[Option<Hit>],
+    mut found: impl FnMut(usize, DVec3),
+) {
+    for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
+        if let Some(hit) = hit {
+            found(i, tracer.normal(ray, hit));
+        }
+    }
 }
 
 /// Sizes of what was built.
@@ -957,18 +967,14 @@ impl Scene {
     /// (`triangle::geometric_normals4`), where each one alone waited on its own square
     /// root and division.
     #[inline]
-    pub fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], mut found: impl FnMut(usize, DVec3)) {
+    pub fn normals(&self, rays: &[Ray], hits: &[Option<Hit>], found: impl FnMut(usize, DVec3)) {
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
             // SAFETY: `avx2` is set only when the CPU has it.
             unsafe { self.normals_avx2(rays, hits, found) };
             return;
         }
-        for (i, (ray, hit)) in rays.iter().zip(hits).enumerate() {
-            if let Some(hit) = hit {
-                found(i, self.normal(ray, hit));
-            }
-        }
+        normals_one_by_one(self, rays, hits, found);
     }
 
     /// [`Scene::normals`] compiled for AVX2.
