@@ -77,6 +77,10 @@ pub struct SceneFigures {
     pub rays: usize,
     /// Hits of the closest-hit pass (both tracers must agree on the count).
     pub hits: usize,
+    /// The preset our triangle tree was built with ([`crate::bvh::BuildPreset::name`]),
+    /// chosen as a job tracing as many rays would choose it
+    /// ([`crate::bvh::BuildPreset::for_triangles`]); `None` without triangles.
+    pub triangle_tree_preset: Option<&'static str>,
     /// Reading the mesh file, when there is one: seconds and MB/s.
     pub load: Option<(f64, f64)>,
     /// Peak resident memory added by loading and building, per triangle (Linux only).
@@ -374,10 +378,17 @@ fn trace_scene(
 ) -> Result<SceneFigures, String> {
     let triangles = scene.geometry.triangles.len();
     let spheres = scene.geometry.spheres.len();
+    // Built as a job tracing as many rays as the passes below would be: every ray, every
+    // query, every thread count, every round.
+    let (width, height) = scene.size;
+    let traced = u64::from(width * height)
+        * (Query::ALL.len() * options.threads.len() * (runs.max(1) + 1)) as u64;
+    let build = || Scene::build_for_rays(&scene.geometry, traced);
 
     // The first build sets the peak (loading and building); later ones reuse the memory.
     let start = Instant::now();
-    let first = Scene::build(&scene.geometry);
+    let first = build();
+    let triangle_tree_preset = (triangles > 0).then(|| first.triangle_tree().preset().name());
     let first_build = start.elapsed().as_secs_f64();
     let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
@@ -412,7 +423,7 @@ fn trace_scene(
         let mut build_times = [vec![first_build], Vec::new()];
         while !builds_enough(&build_times[0]) {
             let start = Instant::now();
-            let built = Scene::build(&scene.geometry);
+            let built = build();
             build_times[0].push(start.elapsed().as_secs_f64());
             drop(built);
         }
@@ -428,7 +439,7 @@ fn trace_scene(
                 build_times[1].push(start.elapsed().as_secs_f64());
             }
         }
-        let mut ours = Scene::build(&scene.geometry);
+        let mut ours = build();
         if options.eight_lane_packets {
             ours.set_wide_leaves(false);
         }
@@ -469,6 +480,7 @@ fn trace_scene(
         spheres,
         rays: rays.len(),
         hits,
+        triangle_tree_preset,
         load: scene.load,
         peak_bytes_per_triangle,
         scene_bytes_per_primitive,
@@ -957,6 +969,7 @@ impl BenchReport {
             "scenes": self.scenes.iter().map(|s| json!({
                 "name": s.name, "triangles": s.triangles, "spheres": s.spheres, "rays": s.rays,
                 "hits": s.hits,
+                "triangle_tree_preset": s.triangle_tree_preset,
                 "load_s": s.load.map(|l| l.0), "load_mb_per_s": s.load.map(|l| l.1),
                 "peak_bytes_per_triangle": s.peak_bytes_per_triangle,
                 "scene_bytes_per_primitive": s.scene_bytes_per_primitive,
@@ -1042,15 +1055,16 @@ impl BenchReport {
         let _ = writeln!(out);
         let _ = writeln!(
             out,
-            "| scene | build s | Embree build s | build / Embree | load s | load MB/s | scene bytes/primitive | peak RSS growth bytes/triangle |"
+            "| scene | triangle tree preset | build s | Embree build s | build / Embree | load s | load MB/s | scene bytes/primitive | peak RSS growth bytes/triangle |"
         );
-        let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|");
+        let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|");
         for s in &self.scenes {
             let _ = writeln!(
                 out,
                 // Build seconds to a tenth of a millisecond: the sphere field's take one or two.
-                "| {} | {:.4} | {} | {} | {} | {} | {:.0} | {} |",
+                "| {} | {} | {:.4} | {} | {} | {} | {} | {:.0} | {} |",
                 s.name,
+                s.triangle_tree_preset.unwrap_or("-"),
                 s.raybatch.build_s,
                 s.embree
                     .as_ref()
@@ -1121,6 +1135,37 @@ mod tests {
             assert!(
                 len >= 64 && len.is_multiple_of(64) && len <= 4096,
                 "{rays}: {len}"
+            );
+        }
+    }
+
+    /// The bench builds its triangle tree as a job tracing all its passes' rays would: at
+    /// 32x32, two thread counts and one counted round (plus the warm-up), 1024 rays × 5
+    /// queries × 2 × 2 = 20,480 rays, enough for reinsertion (64 rays per triangle) on 240
+    /// triangles and not on 400. Counting one pass, or leaving out the queries, the thread
+    /// counts or the warm-up round, gives 240 triangles the default.
+    #[test]
+    fn the_bench_builds_its_tree_for_every_ray_it_traces() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = BenchOptions {
+            quick: true,
+            models: None,
+            threads: vec![1, 2],
+            only: Vec::new(),
+            embree: false,
+            eight_lane_packets: false,
+        };
+        for ((rings, sides), preset) in [((12, 10), "very fast"), ((20, 10), "fastest")] {
+            let file = dir.path().join(format!("torus-{rings}-{sides}.obj"));
+            let torus = crate::procedural::torus(1.0, 0.35, rings, sides);
+            std::fs::write(&file, crate::procedural::to_obj(&torus, "")).unwrap();
+            let scene = mesh_scene("torus", &file, (32, 32)).unwrap();
+            let figures = trace_scene(scene, &options, 1).unwrap();
+            assert_eq!(figures.triangles, 2 * (rings * sides) as usize);
+            assert_eq!(
+                figures.triangle_tree_preset,
+                Some(preset),
+                "{rings}x{sides}"
             );
         }
     }

@@ -197,11 +197,8 @@ impl Batch {
         }
         // Drop the old tree before building the new one, so two are never held at once.
         self.last_tree = None;
-        let rays = report.camera_rays().unwrap_or(0);
-        let preset = BuildPreset::for_triangles(geometry.triangles.len(), rays);
-        let tree = Arc::new(TriangleTree::build(&geometry.triangles, preset));
-        report.triangle_tree_preset = Some(preset.name());
-        let scene = Scene::build_around(geometry, spheres, tree);
+        let scene = Scene::build_for_rays(geometry, report.camera_rays().unwrap_or(0));
+        report.triangle_tree_preset = Some(scene.triangle_tree().preset().name());
         self.tree_builds += 1;
         // Kept for the next job only while its meshes are (not after the last job).
         if !geometry.sources.is_empty() {

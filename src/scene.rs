@@ -341,6 +341,16 @@ impl Scene {
         Scene::build_around(geometry, preset, triangles)
     }
 
+    /// Builds the scene as for about `rays` rays: the triangle tree with
+    /// [`BuildPreset::for_triangles`] (more build effort when the rays are many per
+    /// triangle), the spheres' tree with the default preset (reinsertion did not speed up
+    /// a sphere field's tracing; DEVELOPERS.md, "Build"). How a job builds, and the bench.
+    pub fn build_for_rays(geometry: &SceneGeometry, rays: u64) -> Scene {
+        let preset = BuildPreset::for_triangles(geometry.triangles.len(), rays);
+        let triangles = Arc::new(TriangleTree::build(&geometry.triangles, preset));
+        Scene::build_around(geometry, BuildPreset::default(), triangles)
+    }
+
     /// Builds the scene around a triangle tree already built from `geometry`'s triangles
     /// (by [`TriangleTree::build`], perhaps for an earlier job); only the spheres' tree is
     /// built. The triangles may be left unplaced ([`SceneGeometry::load_unplaced`]).

@@ -142,6 +142,10 @@ fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits(
     assert_eq!(scene["name"], "canonical");
     assert_eq!(scene["rays"], 640 * 480);
     assert_eq!(scene["hits"], 22_632);
+    assert!(
+        scene["triangle_tree_preset"].is_null(),
+        "no triangles: {scene}"
+    );
     let throughput = scene["raybatch"]["throughput"]
         .as_array()
         .expect("throughput");
