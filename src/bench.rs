@@ -5,7 +5,8 @@
 //! jobs (read, build, render, write) of the torus and of a manifest listing 100,000
 //! spheres also run through the Embree backend, in turns with ours.
 //!
-//! Every figure is the median of several runs. Trace passes run in rounds, every query of
+//! Our triangle tree is built as a job tracing as many rays would build it
+//! ([`Scene::build_for_rays`]). Every figure is the median of several runs. Trace passes run in rounds, every query of
 //! both tracers once per round, so that a slow spell of the machine lands on all columns
 //! alike instead of on one. Timing is never asserted in tests; the figures go to
 //! BENCHMARKS.md with the command that produced them.

@@ -294,7 +294,8 @@ pub enum BuildPreset {
     /// obvhs' `very_fast_build`: the smallest search radius and a little reinsertion.
     /// Against `Fast` it builds about a quarter faster and traces camera rays a few per
     /// cent slower. A job builds its triangle tree with it when it traces enough rays
-    /// per triangle ([`BuildPreset::for_triangles`]).
+    /// per triangle ([`BuildPreset::for_triangles`]), and so does `raybatch bench`,
+    /// counting all its passes.
     VeryFast,
     /// obvhs' `fast_build`: a wider PLOC search.
     Fast,
