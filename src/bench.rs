@@ -6,9 +6,9 @@
 //! spheres also run through the Embree backend, in turns with ours.
 //!
 //! Our triangle tree is built as a job tracing as many rays would build it
-//! ([`Scene::build_for_rays`]). Every figure is the median of several runs. Trace passes run in rounds, every query of
-//! both tracers once per round, so that a slow spell of the machine lands on all columns
-//! alike instead of on one. Timing is never asserted in tests; the figures go to
+//! ([`Scene::build_for_rays`]). Every figure is the median of several runs. Trace passes
+//! run in rounds, every query of both tracers once per round, so that a slow spell of the
+//! machine lands on all columns alike instead of on one. Timing is never asserted in tests; the figures go to
 //! BENCHMARKS.md with the command that produced them.
 
 use std::path::{Path, PathBuf};
@@ -382,15 +382,16 @@ fn trace_scene(
     // Built as a job tracing as many rays as the passes below would be: every ray, every
     // query, every thread count, every round.
     let (width, height) = scene.size;
-    let traced = u64::from(width * height)
+    let traced = u64::from(width)
+        * u64::from(height)
         * (Query::ALL.len() * options.threads.len() * (runs.max(1) + 1)) as u64;
     let build = || Scene::build_for_rays(&scene.geometry, traced);
 
     // The first build sets the peak (loading and building); later ones reuse the memory.
     let start = Instant::now();
     let first = build();
-    let triangle_tree_preset = (triangles > 0).then(|| first.triangle_tree().preset().name());
     let first_build = start.elapsed().as_secs_f64();
+    let triangle_tree_preset = (triangles > 0).then(|| first.triangle_tree().preset().name());
     let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
     });
