@@ -995,13 +995,12 @@ pub(crate) fn prefetch(start: usize, end: usize) {
 
 /// Asks the cache for the node or leaf blocks of `child`, so that they arrive while other
 /// work goes on. A packet asks for every child it pushes (it visits nearly all of them).
-/// The single-ray closest-hit traversal asks for the entered child in the lowest slot at
-/// once, before knowing which is nearest: the next visited when it is the only one, and
-/// otherwise one of those the ray entered; where neighbouring rays share few nodes (a fine
-/// mesh at low resolution) the fetch runs while the other children are ordered and pushed.
-/// (Asking for the nearest once ordered measured no better at 320x180 and 1–3% slower at
-/// full HD; in single-ray any-hit traversal, which takes children unordered, asking at
-/// all cost 6–13%.)
+/// The single-ray traversals ask for the entered child in the lowest slot at once, before
+/// knowing which is nearest: the next visited when it is the only one (and always, in
+/// any-hit traversal, which takes children unordered), and otherwise one of those the ray
+/// entered; where neighbouring rays share few nodes (a fine mesh at low resolution) the
+/// fetch runs while the other children are ordered and pushed. (Asking for the nearest
+/// once ordered measured no better at 320x180 and 1–3% slower at full HD.)
 #[inline(always)]
 pub(crate) fn prefetch_child(nodes: &[Node<f32>], blocks: &[TriangleBlock], child: ChildRef) {
     if child & LEAF == 0 {
@@ -1174,6 +1173,8 @@ unsafe fn any_below(
             let (mut mask, _) = unsafe { node_test(node, r, t_far) };
             if mask != 0 {
                 let first = mask.trailing_zeros() as usize;
+                // Asked for before the others are pushed, as in `closest`.
+                prefetch_child(nodes, blocks, node.children[first]);
                 mask &= mask - 1;
                 while mask != 0 {
                     stack[sp] = MaybeUninit::new(node.children[mask.trailing_zeros() as usize]);
