@@ -230,7 +230,8 @@ unsafe fn hashes_avx2(seed_hash: u64, pixels: (&[(u32, u32)], u32), out: &mut [u
     hash_pixels(seed_hash, pixels, out);
 }
 
-/// [`Sampler::pixel_hashes`] for a random sampler, in a loop free of branches.
+/// [`Sampler::pixel_hashes`] for the random and stratified samplers, in a loop free of
+/// branches.
 #[inline(always)]
 fn hash_pixels(seed_hash: u64, (pixels, y0): (&[(u32, u32)], u32), out: &mut [u64]) {
     for (&(x, dy), out) in pixels.iter().zip(out) {
