@@ -239,7 +239,7 @@ fn hash_pixels(seed_hash: u64, (pixels, y0): (&[(u32, u32)], u32), out: &mut [u6
     }
 }
 
-/// [`Sampler::group`] for a random sampler, compiled for AVX-512.
+/// [`Sampler::group`] for the random and stratified samplers, compiled for AVX-512.
 ///
 /// # Safety
 /// The CPU must have AVX-512 F, DQ and VL.
@@ -254,8 +254,8 @@ unsafe fn group_avx512(
     group_numbers(group, u, v, lens);
 }
 
-/// [`Sampler::group`] for a random sampler, compiled for AVX2: the hashes' 64-bit
-/// products four pixels at a time, where the baseline's SSE2 takes two.
+/// [`Sampler::group`] for the random and stratified samplers, compiled for AVX2: the
+/// hashes' 64-bit products four pixels at a time, where the baseline's SSE2 takes two.
 ///
 /// # Safety
 /// The CPU must have AVX2.
@@ -265,8 +265,9 @@ unsafe fn group_avx2(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&
     group_numbers(group, u, v, lens);
 }
 
-/// [`Sampler::group`] for a random sampler: the offsets, then the lens points, each loop
-/// free of branches so that the compiler can take several pixels at once.
+/// [`Sampler::group`] for the random and stratified samplers: the offsets, then the lens
+/// points, each loop free of branches so that the compiler can take several pixels at
+/// once.
 #[inline(always)]
 fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut [(f64, f64)]>) {
     let &Group {
