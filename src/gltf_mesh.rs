@@ -27,7 +27,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         place: Place(place),
         message,
     };
-    let (document, blob) = open(bytes).map_err(|e| fail(None, shorten(&e)))?;
+    let (document, blob) = open(bytes).map_err(|(place, e)| fail(place, shorten(&e)))?;
     let buffers = load_buffers(&document, blob, path)
         .map_err(|(place, message)| fail(Some(place), message))?;
     let buffers: Vec<&[u8]> = buffers.iter().map(|b| &**b).collect();
@@ -123,35 +123,94 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
 /// `KHR_mesh_quantization`, whose integer positions [`read_accessor`] decodes; any other
 /// required extension (Draco, meshopt, GPU instancing...) is refused by the validator.
 ///
-/// A GLB's binary chunk is borrowed from `bytes`, not copied.
-fn open(bytes: &[u8]) -> Result<(gltf::Document, Option<BufferBytes<'_>>), String> {
-    let text = |e: gltf::Error| e.to_string();
-    let (mut root, blob): (gltf::json::Root, _) = if bytes.starts_with(b"glTF") {
+/// A GLB's binary chunk is borrowed from `bytes`, not copied. The error's place is
+/// `asset.version` when the file is of another glTF version ([`check_version`]).
+fn open(
+    bytes: &[u8],
+) -> Result<(gltf::Document, Option<BufferBytes<'_>>), (Option<String>, String)> {
+    let text = |e: gltf::Error| (None, e.to_string());
+    let (json, blob) = if bytes.starts_with(b"glTF") {
         // `Glb::from_slice` subtracts the header's size from its length unchecked.
         const HEADER: u32 = 12;
-        if let Some(length) = bytes
-            .get(8..12)
-            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        let word = |at: usize| {
+            bytes
+                .get(at..at + 4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        };
+        if let Some(version) = word(4)
+            && version != GLTF_MAJOR
+        {
+            return Err((
+                None,
+                format!(
+                    "a GLB of container version {version} (glTF {version}): only glTF 2.0 is read"
+                ),
+            ));
+        }
+        if let Some(length) = word(8)
             && length < HEADER
         {
-            return Err(format!(
-                "the GLB header gives the file's length {length}, less than the header's {HEADER} bytes"
+            return Err((
+                None,
+                format!(
+                    "the GLB header gives the file's length {length}, less than the header's {HEADER} bytes"
+                ),
             ));
         }
         let glb = gltf::binary::Glb::from_slice(bytes).map_err(text)?;
-        let blob = glb.bin.map(BufferBytes::Chunk);
-        let root = gltf::json::deserialize::from_slice(&glb.json)
-            .map_err(|e| text(gltf::Error::Deserialize(e)))?;
-        (root, blob)
+        (glb.json, glb.bin.map(BufferBytes::Chunk))
     } else {
-        let root = gltf::json::deserialize::from_slice(bytes)
-            .map_err(|e| text(gltf::Error::Deserialize(e)))?;
-        (root, None)
+        (Cow::Borrowed(bytes), None)
     };
+    let mut root: gltf::json::Root = match gltf::json::deserialize::from_slice(&json) {
+        Ok(root) => root,
+        Err(e) => {
+            // A glTF 1.0 file fails on its first map where 2.0 has an array; its version,
+            // when it says one, is the more useful cause.
+            let declared = serde_json::from_slice::<serde_json::Value>(&json)
+                .ok()
+                .and_then(|v| v.pointer("/asset/version").map(version_text));
+            if let Some(version) = declared {
+                check_version(&version)?;
+            }
+            return Err(text(gltf::Error::Deserialize(e)));
+        }
+    };
+    check_version(&root.asset.version)?;
     root.extensions_required
         .retain(|name| !geometry_neutral(name));
-    check_position_accessors(&root)?;
+    check_position_accessors(&root).map_err(|e| (None, e))?;
     Ok((gltf::Document::from_json(root).map_err(text)?, blob))
+}
+
+/// The glTF major version read: 2 (`asset.version` "2.0", GLB container version 2).
+const GLTF_MAJOR: u32 = 2;
+
+/// Refuses an `asset.version` whose major version is a number other than
+/// [`GLTF_MAJOR`]: glTF 1.0 lays out meshes, accessors and buffers differently, and the
+/// specification asks readers to refuse a major version they do not know. A version
+/// without a readable major number is left to the rest of the checks.
+fn check_version(version: &str) -> Result<(), (Option<String>, String)> {
+    let major = version
+        .split('.')
+        .next()
+        .and_then(|m| m.trim().parse::<u32>().ok());
+    match major {
+        Some(major) if major != GLTF_MAJOR => Err((
+            Some("asset.version".to_string()),
+            format!("this is glTF {version}; only glTF 2.0 is read"),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// `asset.version` as written: a string's text, or a number (some glTF 1.0 exporters
+/// wrote `1`) as JSON prints it.
+fn version_text(value: &serde_json::Value) -> String {
+    match value {
+        serde_json::Value::String(text) => text.clone(),
+        other => other.to_string(),
+    }
 }
 
 /// gltf-json's validation looks up each primitive's `POSITION` accessor before it checks

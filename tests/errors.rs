@@ -312,6 +312,28 @@ fn bad_mesh_files_are_refused_with_the_file_and_place() {
             br#"{"asset": {"version": "2.0"}, "buffers": [{"byteLength": 36, "uri": "nowhere.bin"}]}"#,
             vec!["missing-bin.gltf", "buffers[0]", "nowhere.bin"],
         ),
+        // glTF 1.0 has maps where 2.0 has arrays; the version is the cause to name.
+        (
+            "old.gltf",
+            br#"{"asset": {"version": "1.0"}, "meshes": {"box": {"primitives": []}}}"#,
+            vec!["old.gltf", "asset.version", "glTF 1.0", "only glTF 2.0"],
+        ),
+        (
+            "old-number.gltf",
+            br#"{"asset": {"version": 1}, "meshes": {"box": {"primitives": []}}}"#,
+            vec!["old-number.gltf", "asset.version", "glTF 1;"],
+        ),
+        (
+            "old.glb",
+            b"glTF\x01\x00\x00\x00\x0c\x00\x00\x00",
+            vec!["old.glb", "container version 1", "only glTF 2.0"],
+        ),
+        // A major version this reader does not know, in a document it could parse.
+        (
+            "future.gltf",
+            br#"{"asset": {"version": "3.0"}}"#,
+            vec!["future.gltf", "asset.version", "glTF 3.0"],
+        ),
         (
             "cycle.gltf",
             br#"{"asset": {"version": "2.0"}, "nodes": [{"children": [1]}, {"children": [0]}],
