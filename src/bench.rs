@@ -84,7 +84,9 @@ pub struct SceneFigures {
     pub triangle_tree_preset: Option<&'static str>,
     /// Reading the mesh file, when there is one: seconds and MB/s.
     pub load: Option<(f64, f64)>,
-    /// Peak resident memory added by loading and building, per triangle (Linux only).
+    /// Peak resident memory added by loading and building, per triangle (Linux only): the
+    /// rise of the process's peak resident size from just before the mesh is read (the
+    /// memory earlier scenes freed handed back first) to the end of the first build.
     pub peak_bytes_per_triangle: Option<f64>,
     /// What the built scene keeps (triangle blocks, spheres and tree nodes), per triangle
     /// or sphere.
@@ -909,8 +911,17 @@ fn canonical_job(temp: &Path) -> Result<JobFigures, String> {
     })
 }
 
-/// Resets the process's peak resident size and returns the current one, in bytes.
+/// Hands the memory the process has freed back to the system, then resets the process's
+/// peak resident size and returns the current one, in bytes. The command keeps freed
+/// memory for reuse (`src/bin/raybatch/memory.rs`): without handing it back, a scene
+/// loaded after another would grow into the memory the earlier one freed, and its peak
+/// would show only what it needed beyond that.
 fn reset_peak_memory() -> Option<u64> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: `malloc_trim` only returns free pages of the allocator's heaps.
+    unsafe {
+        libc::malloc_trim(0);
+    }
     std::fs::write("/proc/self/clear_refs", "5").ok()?;
     status_kb("VmRSS:").map(|kb| kb * 1024)
 }

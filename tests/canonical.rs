@@ -170,3 +170,42 @@ fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits(
         "{report}"
     );
 }
+
+/// Each scene's peak memory is its own: the same 40k-triangle torus loaded and built twice
+/// in a row (through a lens, then at 80x45) grows the process's peak by about as much the
+/// second time. Before the bench handed freed memory back between scenes, the second
+/// scene grew into what the first had freed and read a sixth of the first (32 against
+/// 190 bytes per triangle).
+#[test]
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn bench_memory_figures_are_each_scene_s_own() {
+    let dir = Dir::new();
+    let run = dir.raybatch(&[
+        "bench",
+        "--quick",
+        "--only",
+        "torus-40k through,torus-40k at",
+        "--threads",
+        "1",
+        "--json",
+    ]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let report: serde_json::Value = serde_json::from_str(&run.stdout).expect("JSON on stdout");
+    let peaks: Vec<f64> = report["scenes"]
+        .as_array()
+        .expect("scenes")
+        .iter()
+        .map(|s| {
+            s["peak_bytes_per_triangle"]
+                .as_f64()
+                .unwrap_or_else(|| panic!("no peak: {s}"))
+        })
+        .collect();
+    assert_eq!(peaks.len(), 2, "{report}");
+    // At least the placed triangles (36 bytes each) and the built scene's blocks and nodes.
+    assert!(peaks.iter().all(|&p| p > 80.0), "{peaks:?}");
+    assert!(
+        peaks[1] > 0.6 * peaks[0] && peaks[0] > 0.6 * peaks[1],
+        "{peaks:?}"
+    );
+}

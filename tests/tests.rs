@@ -5,7 +5,7 @@
 //! - `util`: the harness: a temp folder, the real `raybatch` binary run inside it, and
 //!   independent PPM/PFM readers.
 //! - `canonical`: the seed's scene pixel for pixel; P3/P6; thread counts; shipped scenes;
-//!   `raybatch bench`'s report of it.
+//!   `raybatch bench`'s report of it, and of each scene's own memory.
 //! - `camera`: the pixel-to-ray mapping of both camera forms.
 //! - `geometry`: hit rules for spheres, planes and triangles; transforms.
 //! - `integrators`: what `hit`, `depth` and `normal` write.
