@@ -174,8 +174,8 @@ fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits(
 /// Each scene's peak memory is its own: the same 40k-triangle torus loaded and built twice
 /// in a row (through a lens, then at 80x45) grows the process's peak by about as much the
 /// second time. Before the bench handed freed memory back between scenes, the second
-/// scene grew into what the first had freed and read a sixth of the first (32 against
-/// 190 bytes per triangle).
+/// scene grew into what the first had freed and read a fifth of the first (39 against
+/// 207 bytes per triangle).
 #[test]
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn bench_memory_figures_are_each_scene_s_own() {
