@@ -124,18 +124,7 @@ fn the_committed_models_are_what_the_generator_writes() {
 
 #[test]
 fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits() {
-    let dir = Dir::new();
-    let run = dir.raybatch(&[
-        "bench",
-        "--quick",
-        "--only",
-        "canonical",
-        "--threads",
-        "1,2",
-        "--json",
-    ]);
-    assert_eq!(run.status, 0, "{}", run.stderr);
-    let report: serde_json::Value = serde_json::from_str(&run.stdout).expect("JSON on stdout");
+    let report = quick_bench("canonical", "1,2");
     let scenes = report["scenes"].as_array().expect("scenes");
     assert_eq!(scenes.len(), 1, "{report}");
     let scene = &scenes[0];
@@ -179,18 +168,7 @@ fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits(
 #[test]
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn bench_memory_figures_are_each_scene_s_own() {
-    let dir = Dir::new();
-    let run = dir.raybatch(&[
-        "bench",
-        "--quick",
-        "--only",
-        "torus-40k through,torus-40k at",
-        "--threads",
-        "1",
-        "--json",
-    ]);
-    assert_eq!(run.status, 0, "{}", run.stderr);
-    let report: serde_json::Value = serde_json::from_str(&run.stdout).expect("JSON on stdout");
+    let report = quick_bench("torus-40k through,torus-40k at", "1");
     let peaks: Vec<f64> = report["scenes"]
         .as_array()
         .expect("scenes")
@@ -208,4 +186,21 @@ fn bench_memory_figures_are_each_scene_s_own() {
         peaks[1] > 0.6 * peaks[0] && peaks[0] > 0.6 * peaks[1],
         "{peaks:?}"
     );
+}
+
+/// The JSON report of `raybatch bench --quick --only ONLY --threads THREADS`, which must
+/// succeed.
+fn quick_bench(only: &str, threads: &str) -> serde_json::Value {
+    let dir = Dir::new();
+    let run = dir.raybatch(&[
+        "bench",
+        "--quick",
+        "--only",
+        only,
+        "--threads",
+        threads,
+        "--json",
+    ]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    serde_json::from_str(&run.stdout).expect("JSON on stdout")
 }
