@@ -4,7 +4,8 @@
 //! with its transform composed from the root, and every triangle primitive (triangles,
 //! strips and fans); points and lines are skipped with a warning. Buffers are read here
 //! (GLB chunk, `data:` URIs, files beside the glTF) and accessors decoded here, with every
-//! offset checked; images are never read or decoded. A GLB's chunk is used where it lies
+//! offset checked; images are never read or decoded. `POSITION` accessors missing the
+//! bounds the format requires are read with a warning. A GLB's chunk is used where it lies
 //! in the file's bytes and a large buffer file is mapped ([`FileBytes`]), not copied.
 
 use std::borrow::Cow;
@@ -27,7 +28,7 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
         place: Place(place),
         message,
     };
-    let (document, blob) = open(bytes).map_err(|(place, e)| fail(place, shorten(&e)))?;
+    let (document, blob, unbounded) = open(bytes).map_err(|(place, e)| fail(place, shorten(&e)))?;
     let buffers = load_buffers(&document, blob, path)
         .map_err(|(place, message)| fail(Some(place), message))?;
     let buffers: Vec<&[u8]> = buffers.iter().map(|b| &**b).collect();
@@ -106,6 +107,17 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
             pending.push((child, transform, depth + 1));
         }
     }
+    if !unbounded.is_empty() {
+        let places: Vec<String> = unbounded
+            .iter()
+            .map(|a| format!("accessors[{a}]"))
+            .collect();
+        mesh.warnings.push(format!(
+            "{}: {}: POSITION without min and max (glTF 2.0 requires them); read anyway",
+            path.display(),
+            places.join(", ")
+        ));
+    }
     let mut kinds: Vec<_> = skipped.into_iter().collect();
     kinds.sort();
     for (kind, count) in kinds {
@@ -124,10 +136,9 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
 /// required extension (Draco, meshopt, GPU instancing...) is refused by the validator.
 ///
 /// A GLB's binary chunk is borrowed from `bytes`, not copied. The error's place is
-/// `asset.version` when the file is of another glTF version ([`check_version`]).
-fn open(
-    bytes: &[u8],
-) -> Result<(gltf::Document, Option<BufferBytes<'_>>), (Option<String>, String)> {
+/// `asset.version` when the file is of another glTF version ([`check_version`]). Also
+/// returns the `POSITION` accessors that had no `min` or `max` ([`accept_unbounded_positions`]).
+fn open(bytes: &[u8]) -> Result<Opened<'_>, (Option<String>, String)> {
     let text = |e: gltf::Error| (None, e.to_string());
     let (json, blob) = if bytes.starts_with(b"glTF") {
         // `Glb::from_slice` subtracts the header's size from its length unchecked.
@@ -180,7 +191,48 @@ fn open(
     root.extensions_required
         .retain(|name| !geometry_neutral(name));
     check_position_accessors(&root).map_err(|e| (None, e))?;
-    Ok((gltf::Document::from_json(root).map_err(text)?, blob))
+    let unbounded = accept_unbounded_positions(&mut root);
+    Ok((
+        gltf::Document::from_json(root).map_err(text)?,
+        blob,
+        unbounded,
+    ))
+}
+
+/// What [`open`] gives: the document, a GLB's binary chunk, and the `POSITION` accessors
+/// that had no bounds.
+type Opened<'a> = (gltf::Document, Option<BufferBytes<'a>>, Vec<usize>);
+
+/// Gives every `POSITION` accessor without a `min` or `max` a placeholder, so that the
+/// validator, which refuses such files, reads them; returns those accessors' indices.
+/// glTF 2.0 requires the bounds, but some exporters leave them out, and nothing here uses
+/// them: boxes come from the vertices themselves. Bounds that are present are left to the
+/// validator.
+fn accept_unbounded_positions(root: &mut gltf::json::Root) -> Vec<usize> {
+    use gltf::json::mesh::Semantic;
+    use gltf::json::validation::Checked;
+    let mut unbounded: Vec<usize> = root
+        .meshes
+        .iter()
+        .flat_map(|mesh| &mesh.primitives)
+        .filter_map(|primitive| {
+            let index = primitive
+                .attributes
+                .get(&Checked::Valid(Semantic::Positions))?
+                .value();
+            let accessor = root.accessors.get(index)?;
+            (accessor.min.is_none() || accessor.max.is_none()).then_some(index)
+        })
+        .collect();
+    unbounded.sort_unstable();
+    unbounded.dedup();
+    for &index in &unbounded {
+        let accessor = &mut root.accessors[index];
+        let placeholder = || Some(serde_json::json!([0.0, 0.0, 0.0]));
+        accessor.min = accessor.min.take().or_else(placeholder);
+        accessor.max = accessor.max.take().or_else(placeholder);
+    }
+    unbounded
 }
 
 /// The glTF major version read: 2 (`asset.version` "2.0", GLB container version 2).

@@ -1,5 +1,6 @@
 //! Mesh files written by the tests: OBJ polygons and groups; glTF node hierarchies, scene
-//! selection, strips and fans, skipped points and lines, GLB, external and sparse buffers.
+//! selection, strips and fans, skipped points and lines, positions without bounds, GLB,
+//! external and sparse buffers.
 
 use base64::Engine;
 use serde_json::{Value, json};
@@ -234,6 +235,47 @@ fn points_and_lines_are_skipped_with_a_warning() {
             .iter()
             .all(|w| w.contains("m.json") && w.contains("mixed.gltf"))
     );
+}
+
+/// glTF 2.0 requires `min` and `max` on `POSITION` accessors, but some exporters leave
+/// them out; the gltf crate's validator refuses such a file. It is read (nothing needs the
+/// bounds) with a warning naming the accessor, and renders the triangle's depth.
+#[test]
+fn positions_without_min_and_max_are_read_with_a_warning() {
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    for key in ["min", "max"] {
+        buffer.accessors[positions]
+            .as_object_mut()
+            .unwrap()
+            .remove(key);
+    }
+    let document = buffer.document(json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": positions}}]}],
+        "nodes": [{"translation": [0, 0, 6], "mesh": 0}], "scenes": [{"nodes": [0]}]
+    }));
+    let dir = Dir::new();
+    dir.write("bare.gltf", document.to_string());
+    dir.write(
+        "b.json",
+        r#"{"image": {"width": 9, "height": 9}, "output": "d.pfm",
+            "integrator": {"type": "depth"}, "meshes": [{"file": "bare.gltf"}]}"#,
+    );
+    let run = dir.raybatch(&["render", "b.json"]);
+    assert_eq!(run.status, 0, "{}", run.stderr);
+    let warnings: Vec<&str> = run
+        .stderr
+        .lines()
+        .filter(|l| l.contains("warning"))
+        .collect();
+    assert_eq!(warnings.len(), 1, "{}", run.stderr);
+    assert!(
+        warnings[0].contains("bare.gltf")
+            && warnings[0].contains(&format!("accessors[{positions}]"))
+            && warnings[0].contains("min and max"),
+        "{warnings:?}"
+    );
+    assert_close(crate::util::pfm(&dir.read("d.pfm")).at(4, 4)[0], 6.0);
 }
 
 #[test]
