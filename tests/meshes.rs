@@ -216,11 +216,7 @@ fn points_and_lines_are_skipped_with_a_warning() {
     );
     let run = dir.raybatch(&["render", "m.json"]);
     assert_eq!(run.status, 0, "{}", run.stderr);
-    let warnings: Vec<&str> = run
-        .stderr
-        .lines()
-        .filter(|l| l.contains("warning"))
-        .collect();
+    let warnings = run.warning_lines();
     assert_eq!(warnings.len(), 2, "{}", run.stderr);
     assert!(
         warnings.iter().any(|w| w.contains("1 point primitive")),
@@ -263,11 +259,7 @@ fn positions_without_min_and_max_are_read_with_a_warning() {
     );
     let run = dir.raybatch(&["render", "b.json"]);
     assert_eq!(run.status, 0, "{}", run.stderr);
-    let warnings: Vec<&str> = run
-        .stderr
-        .lines()
-        .filter(|l| l.contains("warning"))
-        .collect();
+    let warnings = run.warning_lines();
     assert_eq!(warnings.len(), 1, "{}", run.stderr);
     assert!(
         warnings[0].contains("bare.gltf")

@@ -11,6 +11,9 @@ pub struct Dir {
     tmp: tempfile::TempDir,
 }
 
+/// How the binary starts a warning line on stderr.
+const WARNING: &str = "raybatch: warning:";
+
 /// A finished run of the binary.
 #[derive(Debug)]
 pub struct Run {
@@ -24,7 +27,15 @@ impl Run {
     pub fn error_lines(&self) -> Vec<&str> {
         self.stderr
             .lines()
-            .filter(|l| !l.starts_with("raybatch: warning:"))
+            .filter(|l| !l.starts_with(WARNING))
+            .collect()
+    }
+
+    /// Lines on stderr that give a warning.
+    pub fn warning_lines(&self) -> Vec<&str> {
+        self.stderr
+            .lines()
+            .filter(|l| l.starts_with(WARNING))
             .collect()
     }
 }
