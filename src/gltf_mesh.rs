@@ -137,7 +137,8 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
 ///
 /// A GLB's binary chunk is borrowed from `bytes`, not copied. The error's place is
 /// `asset.version` when the file is of another glTF version ([`check_version`]). Also
-/// returns the `POSITION` accessors that had no `min` or `max` ([`accept_unbounded_positions`]).
+/// returns the `POSITION` accessors that had no `min` or `max`
+/// ([`accept_unbounded_positions`]).
 fn open(bytes: &[u8]) -> Result<Opened<'_>, (Option<String>, String)> {
     let text = |e: gltf::Error| (None, e.to_string());
     let (json, blob) = if bytes.starts_with(b"glTF") {
