@@ -8,8 +8,8 @@
 //! Our triangle tree is built as a job tracing as many rays would build it
 //! ([`Scene::build_for_rays`]). Every figure is the median of several runs. Trace passes
 //! run in rounds, every query of both tracers once per round, so that a slow spell of the
-//! machine lands on all columns alike instead of on one. Timing is never asserted in tests; the figures go to
-//! BENCHMARKS.md with the command that produced them.
+//! machine lands on all columns alike instead of on one. Timing is never asserted in
+//! tests; the figures go to BENCHMARKS.md with the command that produced them.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

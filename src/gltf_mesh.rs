@@ -210,19 +210,12 @@ type Opened<'a> = (gltf::Document, Option<BufferBytes<'a>>, Vec<usize>);
 /// them: boxes come from the vertices themselves. Bounds that are present are left to the
 /// validator.
 fn accept_unbounded_positions(root: &mut gltf::json::Root) -> Vec<usize> {
-    use gltf::json::mesh::Semantic;
-    use gltf::json::validation::Checked;
-    let mut unbounded: Vec<usize> = root
-        .meshes
-        .iter()
-        .flat_map(|mesh| &mesh.primitives)
-        .filter_map(|primitive| {
-            let index = primitive
-                .attributes
-                .get(&Checked::Valid(Semantic::Positions))?
-                .value();
-            let accessor = root.accessors.get(index)?;
-            (accessor.min.is_none() || accessor.max.is_none()).then_some(index)
+    let mut unbounded: Vec<usize> = position_accessors(root)
+        .map(|(_, index)| index)
+        .filter(|&index| {
+            root.accessors
+                .get(index)
+                .is_some_and(|a| a.min.is_none() || a.max.is_none())
         })
         .collect();
     unbounded.sort_unstable();
@@ -269,25 +262,33 @@ fn version_text(value: &serde_json::Value) -> String {
 /// gltf-json's validation looks up each primitive's `POSITION` accessor before it checks
 /// that the index exists (and panics when it does not), so it is checked here first.
 fn check_position_accessors(root: &gltf::json::Root) -> Result<(), String> {
+    match position_accessors(root).find(|&(_, index)| index >= root.accessors.len()) {
+        Some(((m, p), index)) => Err(format!(
+            "meshes[{m}].primitives[{p}].attributes.POSITION: accessor {index} does not exist (the file has {})",
+            root.accessors.len()
+        )),
+        None => Ok(()),
+    }
+}
+
+/// Every primitive's `POSITION` accessor index (not checked against the accessors), with
+/// the primitive's `(mesh, primitive)` position.
+fn position_accessors(
+    root: &gltf::json::Root,
+) -> impl Iterator<Item = ((usize, usize), usize)> + '_ {
     use gltf::json::mesh::Semantic;
     use gltf::json::validation::Checked;
-    for (m, mesh) in root.meshes.iter().enumerate() {
-        for (p, primitive) in mesh.primitives.iter().enumerate() {
-            let position = primitive
-                .attributes
-                .get(&Checked::Valid(Semantic::Positions));
-            if let Some(index) = position
-                && index.value() >= root.accessors.len()
-            {
-                return Err(format!(
-                    "meshes[{m}].primitives[{p}].attributes.POSITION: accessor {} does not exist (the file has {})",
-                    index.value(),
-                    root.accessors.len()
-                ));
-            }
-        }
-    }
-    Ok(())
+    root.meshes.iter().enumerate().flat_map(|(m, mesh)| {
+        mesh.primitives
+            .iter()
+            .enumerate()
+            .filter_map(move |(p, primitive)| {
+                let index = primitive
+                    .attributes
+                    .get(&Checked::Valid(Semantic::Positions))?;
+                Some(((m, p), index.value()))
+            })
+    })
 }
 
 fn geometry_neutral(extension: &str) -> bool {
