@@ -47,7 +47,9 @@ pub(crate) struct TriLanes<V> {
     pub(crate) kx: usize,
     pub(crate) ky: usize,
     pub(crate) kz: usize,
-    pub(crate) origin: [V; 3],
+    /// The origin's coordinates on the axes `kx`, `ky`, `kz`, in that order: indexed by
+    /// constants, so that the test reads them from registers rather than by axis.
+    pub(crate) origin_k: [V; 3],
     pub(crate) sx: V,
     pub(crate) sy: V,
     pub(crate) sz: V,
@@ -88,6 +90,8 @@ pub(crate) struct RayConstants {
     pub(crate) inv_far: __m128,
     pub(crate) shear: __m128,
     pub(crate) k: [usize; 3],
+    /// The permutation of a vector `(x, y, z, w)` into `(kx, ky, kz, w)`.
+    pub(crate) order: __m128i,
 }
 
 /// The same IEEE divisions and products as [`ShearedRay::new`](crate::triangle::ShearedRay::new)
@@ -125,6 +129,7 @@ pub(crate) unsafe fn ray_constants([dx, dy, dz]: [f32; 3]) -> RayConstants {
             inv_far: _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE)),
             shear: _mm256_castps256_ps128(quotient),
             k,
+            order,
         }
     }
 }
@@ -392,11 +397,17 @@ pub(crate) unsafe fn triangle_lanes(
     let shear = constants.shear;
     // SAFETY: AVX2 is enabled in the caller.
     unsafe {
+        let [ox, oy, oz] = ray.origin;
+        let origin_k = _mm_permutevar_ps(_mm_setr_ps(ox, oy, oz, 0.0), constants.order);
         TriLanes {
             kx,
             ky,
             kz,
-            origin: ray.origin.map(|o| _mm_set1_ps(o)),
+            origin_k: [
+                _mm_permute_ps::<0b00_00_00_00>(origin_k),
+                _mm_permute_ps::<0b01_01_01_01>(origin_k),
+                _mm_permute_ps::<0b10_10_10_10>(origin_k),
+            ],
             sx: _mm_permute_ps::<0b00_00_00_00>(shear),
             sy: _mm_permute_ps::<0b01_01_01_01>(shear),
             sz: _mm_permute_ps::<0b10_10_10_10>(shear),
@@ -445,7 +456,7 @@ pub(crate) unsafe fn lanes(
                 kx: tri.kx,
                 ky: tri.ky,
                 kz: tri.kz,
-                origin: tri.origin.map(|x| _mm256_set_m128(x, x)),
+                origin_k: tri.origin_k.map(|x| _mm256_set_m128(x, x)),
                 sx: _mm256_set_m128(tri.sx, tri.sx),
                 sy: _mm256_set_m128(tri.sy, tri.sy),
                 sz: _mm256_set_m128(tri.sz, tri.sz),
@@ -513,13 +524,18 @@ macro_rules! watertight_test {
      $min:ident, $max:ident, $cmp:ident, $movemask:ident) => {{
         let r = $r;
         let vertex = $vertex;
-        let relative = |v: usize, axis: usize| $sub(vertex(v, axis), r.origin[axis]);
         let (kx, ky, kz) = (r.kx, r.ky, r.kz);
-        let (az, bz, cz) = (relative(0, kz), relative(1, kz), relative(2, kz));
-        let shear = |v: usize, axis: usize, s, z| $sub(relative(v, axis), $mul(s, z));
-        let (ax, ay) = (shear(0, kx, r.sx, az), shear(0, ky, r.sy, az));
-        let (bx, by) = (shear(1, kx, r.sx, bz), shear(1, ky, r.sy, bz));
-        let (cx, cy) = (shear(2, kx, r.sx, cz), shear(2, ky, r.sy, cz));
+        let [okx, oky, okz] = r.origin_k;
+        let relative = |v: usize, axis: usize, o| $sub(vertex(v, axis), o);
+        let (az, bz, cz) = (
+            relative(0, kz, okz),
+            relative(1, kz, okz),
+            relative(2, kz, okz),
+        );
+        let shear = |v: usize, axis: usize, o, s, z| $sub(relative(v, axis, o), $mul(s, z));
+        let (ax, ay) = (shear(0, kx, okx, r.sx, az), shear(0, ky, oky, r.sy, az));
+        let (bx, by) = (shear(1, kx, okx, r.sx, bz), shear(1, ky, oky, r.sy, bz));
+        let (cx, cy) = (shear(2, kx, okx, r.sx, cz), shear(2, ky, oky, r.sy, cz));
         let mut u = $sub($mul(cx, by), $mul(cy, bx));
         let mut v = $sub($mul(ax, cy), $mul(ay, cx));
         let mut w = $sub($mul(bx, ay), $mul(by, ax));

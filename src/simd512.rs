@@ -234,7 +234,8 @@ mod tests {
                 kx: rays[0].kx,
                 ky: rays[0].ky,
                 kz: rays[0].kz,
-                origin: [0, 1, 2].map(|axis| lanes(&|r| r.origin[axis])),
+                origin_k: [rays[0].kx, rays[0].ky, rays[0].kz]
+                    .map(|axis| lanes(&|r| r.origin[axis])),
                 sx: lanes(&|r| r.sx),
                 sy: lanes(&|r| r.sy),
                 sz: lanes(&|r| r.sz),
