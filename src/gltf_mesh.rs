@@ -222,9 +222,9 @@ fn accept_unbounded_positions(root: &mut gltf::json::Root) -> Vec<usize> {
     unbounded.dedup();
     for &index in &unbounded {
         let accessor = &mut root.accessors[index];
-        let placeholder = || Some(serde_json::json!([0.0, 0.0, 0.0]));
-        accessor.min = accessor.min.take().or_else(placeholder);
-        accessor.max = accessor.max.take().or_else(placeholder);
+        for bound in [&mut accessor.min, &mut accessor.max] {
+            bound.get_or_insert_with(|| serde_json::json!([0.0, 0.0, 0.0]));
+        }
     }
     unbounded
 }
