@@ -1188,6 +1188,8 @@ unsafe fn any_below(
             // SAFETY: AVX2 is enabled in the caller.
             let (mut mask, _) = unsafe { node_test(node, r, t_far) };
             if mask != 0 {
+                // Children in slot order: nearest first or leaves first measured slower
+                // (DEVELOPERS.md, "A single any-hit ray takes the entered children ...").
                 let first = mask.trailing_zeros() as usize;
                 // Asked for before the others are pushed, as in `closest`.
                 prefetch_child(nodes, blocks, node.children[first]);
