@@ -22,11 +22,11 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    STACK, TriLanes, block_pair_test, block_test, distance, lanes3, lanes4, lanes8, pack,
+    Hits, STACK, TriLanes, block_pair_test, block_test, distance, lanes3, lanes4, pack,
     prefetch_child, push_sorted, row_constants, row_test, slab_test,
 };
-use crate::simd512::{self, lanes16};
-use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit};
+use crate::simd512;
+use crate::triangle::{BLOCK, Nearest, SEARCH_MARGIN, TriangleBlock, TriangleHit};
 
 /// Most rays in a packet.
 pub const PACKET: usize = 64;
@@ -272,14 +272,29 @@ struct RayRows {
     /// Each ray's shear, for the watertight triangle test.
     shear: [Rows; 3],
     tmin: Rows,
+    /// Each ray's axes `k` (`simd::ray_constants`).
+    axes: [[usize; 3]; PACKET],
+    search: Search,
+}
+
+/// Where each ray of a packet stands in its search, a ray per lane as in [`RayRows`]: in
+/// rows, so that a row test's hits are taken a row at a time in a few vector instructions
+/// ([`fold_row_hits8`], [`fold_row_hits16`]) rather than ray by ray through memory
+/// (DEVELOPERS.md, "A row test's hits are taken a row at a time").
+#[repr(C)]
+struct Search {
     /// The bound a box's entry must stay below: the ray's nearest hit so far, or its
     /// `tmax`; −∞ once the ray is done or in lanes past the packet's rays.
     t_box: Rows,
     /// The bound its triangle distances must stay below (`t_triangle`).
     t_tri: Rows,
-    /// Each ray's axes `k` (`simd::ray_constants`).
-    axes: [[usize; 3]; PACKET],
-    nearest: [Nearest; PACKET],
+    /// The ray's [`Nearest`]: its distance (`tmax` before any hit) and, as bits, its slot.
+    /// Closest hit only; any hit leaves them as they start.
+    near_t: Rows,
+    near_slot: Rows,
+    /// The barycentric weights of that hit ([`TriangleHit`]), where the packet's `found`
+    /// has the ray's bit.
+    b: [Rows; 3],
 }
 
 /// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
@@ -482,9 +497,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     f32::NEG_INFINITY
                 });
                 (*fill).axes[k] = axes;
-                (*fill).nearest[k] = nearest;
-                (*fill).t_box.0[r][l] = nearest.horizon();
-                (*fill).t_tri.0[r][l] = t_triangle::<ANY>(nearest);
+                let search = &raw mut (*fill).search;
+                (*search).near_t.0[r][l] = nearest.t;
+                (*search).near_slot.0[r][l] = f32::from_bits(nearest.slot);
+                (*search).t_box.0[r][l] = nearest.horizon();
+                (*search).t_tri.0[r][l] = t_triangle::<ANY>(nearest);
             }
         }
     }
@@ -495,10 +512,8 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
         inv_far,
         shear: shear_rows,
         tmin,
-        t_box,
-        t_tri,
         axes,
-        nearest,
+        search,
     } = unsafe { storage.assume_init_mut() };
     // The same for pairs of rows, which the sixteen-lane row test needs.
     let shared_pairs: [bool; ROWS / 2] = std::array::from_fn(|pair| {
@@ -510,7 +525,8 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
         return Some(visits);
     }
     let mut live = n;
-    let mut found: [Option<TriangleHit>; PACKET] = [None; PACKET];
+    // A bit per ray with a hit: for closest hit, the nearest so far, in `search`.
+    let mut found = 0u64;
     let offset = |side: usize, axis: usize| (side * 3 + axis) * WIDTH;
     let near: [usize; 3] = [0, 1, 2].map(|a| offset(packet.octant[a], a));
     let far: [usize; 3] = [0, 1, 2].map(|a| offset(1 - packet.octant[a], a));
@@ -564,11 +580,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
 
             // Each of the leaf's triangles against the rays `8 · $row + i` of `$hits` at
             // once, by `$test` over the rays' constants in `$row_lanes` (which share the
-            // axes of ray `8 · $row`), `$lanes` reading the test's lanes. Each hit of a ray
-            // still searching is kept if nearest (closest hit), or ends the ray's search
-            // (any hit, which also clears its bit in `$hits`).
+            // axes of ray `8 · $row`), whose hits `$fold` takes into `search`: kept if
+            // nearest (closest hit), or ending the rays' search (any hit, which also
+            // clears their bits in `$hits`, and stops when none is left).
             macro_rules! row_tests {
-                ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $lanes:ident) => {{
+                ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $fold:ident) => {{
                     let [kx, ky, kz] = axes[$row * 8];
                     let row = TriLanes {
                         kx,
@@ -580,40 +596,34 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                         sz: $row_lanes(&shear_rows[2]),
                         tmin: $row_lanes(&tmin),
                     };
-                    for b in first..first + count {
+                    'blocks: for b in first..first + count {
                         let block = &blocks[b as usize];
                         for l in 0..BLOCK {
+                            if ANY && $hits == 0 {
+                                break 'blocks;
+                            }
                             // The last block repeats its last triangle in unused lanes.
                             if l > 0 && block.ids[l] == block.ids[l - 1] {
                                 break;
                             }
                             // SAFETY: the width's features are enabled where `trace` inlines.
                             let (mask, row_hits) =
-                                unsafe { $test(block, l, &row, $row_lanes(&t_tri)) };
+                                unsafe { $test(block, l, &row, $row_lanes(&search.t_tri)) };
+                            if mask & $hits == 0 {
+                                continue;
+                            }
                             let slot = b * BLOCK as u32 + l as u32;
-                            let mut m = mask & $hits;
-                            while m != 0 {
-                                let i = m.trailing_zeros() as usize;
-                                m &= m - 1;
-                                let k = $row * 8 + i;
-                                if ANY {
-                                    any[k] = true;
-                                    nearest[k].t = f32::NEG_INFINITY;
-                                    $hits &= !(1 << i);
-                                    live -= 1;
-                                } else {
-                                    // SAFETY: as above.
-                                    let t = unsafe { $lanes(row_hits.t) }[i];
-                                    if !nearest[k].improves(t, slot) {
-                                        continue;
-                                    }
-                                    nearest[k] = Nearest { t, slot };
-                                    // SAFETY: as above.
-                                    found[k] = Some(unsafe { row_hits.hit(i) });
-                                }
-                                t_box.0[k / 8][k % 8] = nearest[k].horizon();
-                                t_tri.0[k / 8][k % 8] = t_triangle::<ANY>(nearest[k]);
+                            // SAFETY: as above.
+                            let kept = unsafe {
+                                $fold::<ANY>(search, $row, mask & $hits, &row_hits, slot)
+                            };
+                            if kept != 0 {
+                                found |= u64::from(kept) << ($row * 8);
                                 improved = true;
+                                if ANY {
+                                    $hits &= !kept;
+                                    live -= kept.count_ones() as usize;
+                                }
                             }
                         }
                     }
@@ -630,7 +640,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     if hits.count_ones() >= ROW_TEST_FROM && shared_axes[r] {
                         // SAFETY: rows are 32-byte aligned arrays of eight floats.
                         let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
-                        row_tests!(r, hits, lane, row_test, lanes8);
+                        row_tests!(r, hits, lane, row_test, fold_row_hits8);
                     } else {
                         while hits != 0 {
                             let k = r * 8 + hits.trailing_zeros() as usize;
@@ -663,8 +673,13 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                             // them), then the last alone if their number is odd.
                             let end = first + count;
                             let mut b = first;
+                            let mut nearest = Nearest {
+                                t: search.near_t.0[r][l],
+                                slot: search.near_slot.0[r][l].to_bits(),
+                            };
+                            let mut hit = None;
                             while b < end {
-                                let limit = t_triangle::<ANY>(nearest[k]);
+                                let limit = t_triangle::<ANY>(nearest);
                                 let (mask, kept) = if b + 1 < end {
                                     let (mask, lanes) = unsafe {
                                         block_pair_test(blocks, b as usize, &tri8, set8(limit))
@@ -673,12 +688,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                     (
                                         mask,
                                         keep && unsafe {
-                                            lanes.keep_nearest(
-                                                mask,
-                                                b,
-                                                &mut nearest[k],
-                                                &mut found[k],
-                                            )
+                                            lanes.keep_nearest(mask, b, &mut nearest, &mut hit)
                                         },
                                     )
                                 } else {
@@ -688,12 +698,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                     let keep = mask != 0 && !ANY;
                                     (
                                         mask,
-                                        keep && lanes.keep_nearest(
-                                            mask,
-                                            b,
-                                            &mut nearest[k],
-                                            &mut found[k],
-                                        ),
+                                        keep && lanes.keep_nearest(mask, b, &mut nearest, &mut hit),
                                     )
                                 };
                                 b += 2;
@@ -701,18 +706,26 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                     continue;
                                 }
                                 if ANY {
-                                    any[k] = true;
-                                    nearest[k].t = f32::NEG_INFINITY;
-                                    t_box.0[r][l] = f32::NEG_INFINITY;
-                                    t_tri.0[r][l] = f32::NEG_INFINITY;
+                                    found |= 1 << k;
+                                    search.t_box.0[r][l] = f32::NEG_INFINITY;
+                                    search.t_tri.0[r][l] = f32::NEG_INFINITY;
                                     live -= 1;
                                     improved = true;
                                     break;
                                 }
                                 if kept {
-                                    t_box.0[r][l] = nearest[k].horizon();
-                                    t_tri.0[r][l] = t_triangle::<ANY>(nearest[k]);
+                                    search.t_box.0[r][l] = nearest.horizon();
+                                    search.t_tri.0[r][l] = t_triangle::<ANY>(nearest);
                                     improved = true;
+                                }
+                            }
+                            if let Some(hit) = hit {
+                                found |= 1 << k;
+                                search.near_t.0[r][l] = nearest.t;
+                                search.near_slot.0[r][l] = f32::from_bits(nearest.slot);
+                                let weights = [hit.b0, hit.b1, hit.b2];
+                                for (row, weight) in search.b.iter_mut().zip(weights) {
+                                    row.0[r][l] = weight;
                                 }
                             }
                         }
@@ -734,12 +747,12 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8
                     // floats; AVX-512F is enabled where `trace` inlines.
                     let mut hits = unsafe {
-                        let (tmin, tmax) = (pair_lanes(tmin), pair_lanes(t_box));
+                        let (tmin, tmax) = (pair_lanes(tmin), pair_lanes(&search.t_box));
                         simd512::leaf_box_test(&group, planes, slot, tmin, tmax)
                     };
                     visits.entries += hits.count_ones();
                     if hits.count_ones() >= WIDE_ROW_TEST_FROM && shared {
-                        row_tests!(r, hits, pair_lanes, simd512::row_test, lanes16);
+                        row_tests!(r, hits, pair_lanes, simd512::row_test, fold_row_hits16);
                     } else {
                         row_triangles!(r, hits & 0xff);
                         row_triangles!(r + 1, hits >> 8);
@@ -753,7 +766,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     // The single-ray test, the leaf's box against eight rays.
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
                     let (_, entered) = unsafe {
-                        slab_test! { &group, planes, slot, lane(tmin), lane(t_box),
+                        slab_test! { &group, planes, slot, lane(tmin), lane(&search.t_box),
                         broadcast_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps,
                         _mm256_cmp_ps }
                     };
@@ -767,7 +780,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             if improved {
                 // The largest horizon: `t_box` holds each live ray's, −∞ elsewhere.
                 // SAFETY: rows are 32-byte aligned arrays of eight floats.
-                let row = |r: usize| unsafe { _mm256_load_ps(t_box.0[r].as_ptr()) };
+                let row = |r: usize| unsafe { _mm256_load_ps(search.t_box.0[r].as_ptr()) };
                 let mut widest = row(0);
                 for r in 1..ROWS {
                     // SAFETY: AVX2 is enabled where `trace` inlines.
@@ -788,16 +801,200 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             unsafe { pop_within(&stack, &mut sp, packet_tmax) }
         };
         let Some(next) = next else {
-            if !ANY {
-                for k in 0..n {
-                    if let Some(hit) = found[k] {
-                        closest(k, nearest[k], hit);
-                    }
+            let mut m = found;
+            while m != 0 {
+                let k = m.trailing_zeros() as usize;
+                m &= m - 1;
+                if ANY {
+                    any[k] = true;
+                    continue;
                 }
+                let (r, l) = (k / 8, k % 8);
+                let nearest = Nearest {
+                    t: search.near_t.0[r][l],
+                    slot: search.near_slot.0[r][l].to_bits(),
+                };
+                let [b0, b1, b2] = search.b.each_ref().map(|row| row.0[r][l]);
+                closest(
+                    k,
+                    nearest,
+                    TriangleHit {
+                        t: nearest.t,
+                        b0,
+                        b1,
+                        b2,
+                    },
+                );
             }
             return Some(visits);
         };
         current = next;
+    }
+}
+
+/// Takes the hits in lanes `mask` of a row test (of the triangle in `slot` against row
+/// `r`, its values in `hits`) into `search`. Closest hit keeps each that improves on its
+/// ray's [`Nearest`] (nearer, or as near from a lower slot), with its weights, horizon and
+/// triangle bound; any hit ends each ray's search. Returns the lanes taken. Lane for lane
+/// the same IEEE operations as [`Nearest::improves`], [`Nearest::horizon`],
+/// [`t_triangle`] and [`Hits::hit_in`], so the results are theirs.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn fold_row_hits8<const ANY: bool>(
+    search: &mut Search,
+    r: usize,
+    mask: u32,
+    hits: &Hits<__m256>,
+    slot: u32,
+) -> u32 {
+    // SAFETY: AVX2 is enabled in the caller; rows are 32-byte aligned arrays of eight
+    // floats.
+    unsafe {
+        let load = |rows: &Rows| _mm256_load_ps(rows.0[r].as_ptr());
+        let lanes_of = |bits: u32| {
+            let each = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+            let set = _mm256_and_si256(_mm256_set1_epi32(bits as i32), each);
+            _mm256_castsi256_ps(_mm256_cmpeq_epi32(set, each))
+        };
+        let put = |rows: &mut Rows, x: __m256, lanes: __m256| {
+            let x = _mm256_blendv_ps(load(rows), x, lanes);
+            _mm256_store_ps(rows.0[r].as_mut_ptr(), x);
+        };
+        if ANY {
+            let done = _mm256_set1_ps(f32::NEG_INFINITY);
+            put(&mut search.t_box, done, lanes_of(mask));
+            put(&mut search.t_tri, done, lanes_of(mask));
+            return mask;
+        }
+        let nearest_t = load(&search.near_t);
+        let nearest_slot = _mm256_castps_si256(load(&search.near_slot));
+        let slot_lanes = _mm256_set1_epi32(slot as i32);
+        // `slot < nearest.slot`, unsigned: compared signed with the top bits flipped.
+        let flip = _mm256_set1_epi32(i32::MIN);
+        let lower_slot = _mm256_cmpgt_epi32(
+            _mm256_xor_si256(nearest_slot, flip),
+            _mm256_xor_si256(slot_lanes, flip),
+        );
+        let improves = _mm256_or_ps(
+            _mm256_cmp_ps::<_CMP_LT_OQ>(hits.t, nearest_t),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_EQ_OQ>(hits.t, nearest_t),
+                _mm256_castsi256_ps(lower_slot),
+            ),
+        );
+        let kept = _mm256_movemask_ps(improves) as u32 & mask;
+        if kept == 0 {
+            return 0;
+        }
+        let lanes = lanes_of(kept);
+        put(&mut search.near_t, hits.t, lanes);
+        put(
+            &mut search.near_slot,
+            _mm256_castsi256_ps(slot_lanes),
+            lanes,
+        );
+        for (row, weight) in search.b.iter_mut().zip([hits.u, hits.v, hits.w]) {
+            put(row, _mm256_div_ps(weight, hits.det), lanes);
+        }
+        let margin = _mm256_set1_ps(SEARCH_MARGIN);
+        put(&mut search.t_box, _mm256_mul_ps(hits.t, margin), lanes);
+        put(&mut search.t_tri, next_up8(hits.t), lanes);
+        kept
+    }
+}
+
+/// [`fold_row_hits8`] for a sixteen-lane row test, of rows `r` and `r + 1`.
+///
+/// # Safety
+/// Only from a function with AVX-512F enabled.
+#[inline(always)]
+unsafe fn fold_row_hits16<const ANY: bool>(
+    search: &mut Search,
+    r: usize,
+    mask: u32,
+    hits: &Hits<__m512>,
+    slot: u32,
+) -> u32 {
+    // SAFETY: AVX-512F is enabled in the caller; rows are 64-byte aligned, so rows `r`
+    // and `r + 1` (`r` even) are sixteen floats on a 64-byte boundary.
+    unsafe {
+        let load = |rows: &Rows| _mm512_load_ps(rows.0[r].as_ptr());
+        let put = |rows: &mut Rows, x: __m512, lanes: __mmask16| {
+            let x = _mm512_mask_blend_ps(lanes, load(rows), x);
+            _mm512_store_ps(rows.0[r].as_mut_ptr(), x);
+        };
+        if ANY {
+            let done = _mm512_set1_ps(f32::NEG_INFINITY);
+            put(&mut search.t_box, done, mask as __mmask16);
+            put(&mut search.t_tri, done, mask as __mmask16);
+            return mask;
+        }
+        let nearest_t = load(&search.near_t);
+        let nearest_slot = _mm512_castps_si512(load(&search.near_slot));
+        let slot_lanes = _mm512_set1_epi32(slot as i32);
+        let improves = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(hits.t, nearest_t)
+            | (_mm512_cmp_ps_mask::<_CMP_EQ_OQ>(hits.t, nearest_t)
+                & _mm512_cmplt_epu32_mask(slot_lanes, nearest_slot));
+        let kept = u32::from(improves) & mask;
+        if kept == 0 {
+            return 0;
+        }
+        let lanes = kept as __mmask16;
+        put(&mut search.near_t, hits.t, lanes);
+        put(
+            &mut search.near_slot,
+            _mm512_castsi512_ps(slot_lanes),
+            lanes,
+        );
+        for (row, weight) in search.b.iter_mut().zip([hits.u, hits.v, hits.w]) {
+            put(row, _mm512_div_ps(weight, hits.det), lanes);
+        }
+        let margin = _mm512_set1_ps(SEARCH_MARGIN);
+        put(&mut search.t_box, _mm512_mul_ps(hits.t, margin), lanes);
+        put(&mut search.t_tri, next_up16(hits.t), lanes);
+        kept
+    }
+}
+
+/// `f32::next_up` of each lane of `x` that is neither NaN nor +∞: one step up in the
+/// integers above zero, one step down below it, and the least subnormal from ±0.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn next_up8(x: __m256) -> __m256 {
+    // SAFETY: AVX2 is enabled in the caller.
+    unsafe {
+        let zero = _mm256_setzero_ps();
+        // All ones (−1) where true.
+        let above = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GT_OQ>(x, zero));
+        let below = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LT_OQ>(x, zero));
+        let bits = _mm256_castps_si256(x);
+        let stepped = _mm256_add_epi32(_mm256_sub_epi32(bits, above), below);
+        let least = _mm256_castsi256_ps(_mm256_set1_epi32(1));
+        let is_zero = _mm256_cmp_ps::<_CMP_EQ_OQ>(x, zero);
+        _mm256_blendv_ps(_mm256_castsi256_ps(stepped), least, is_zero)
+    }
+}
+
+/// [`next_up8`] in sixteen lanes.
+///
+/// # Safety
+/// Only from a function with AVX-512F enabled.
+#[inline(always)]
+unsafe fn next_up16(x: __m512) -> __m512 {
+    // SAFETY: AVX-512F is enabled in the caller.
+    unsafe {
+        let zero = _mm512_setzero_ps();
+        let one = _mm512_set1_epi32(1);
+        let bits = _mm512_castps_si512(x);
+        let above = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(x, zero);
+        let below = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(x, zero);
+        // The least subnormal (bits 1) where neither.
+        let stepped = _mm512_mask_add_epi32(one, above, bits, one);
+        _mm512_castsi512_ps(_mm512_mask_sub_epi32(stepped, below, bits, one))
     }
 }
 
@@ -1243,6 +1440,234 @@ mod tests {
         );
         assert!(worth_trying(tree) && !super::scattered(tree));
         assert!(!super::scattered(PacedTree::Spheres));
+    }
+
+    /// A row test's hits are taken as the scalar rules take them one ray at a time: for
+    /// closest hit, [`Nearest::improves`] (ties included, slots above 2³¹ among them),
+    /// then the hit's weights ([`Hits::hit_in`]), [`Nearest::horizon`] and
+    /// [`t_triangle`]; for any hit, the ray's bounds to −∞. Every lane outside the
+    /// mask, or not improved, keeps all its values. Distances are drawn from a few values
+    /// so that ties are common; eight lanes and (with AVX-512) sixteen, in every row.
+    #[test]
+    fn a_row_tests_hits_are_taken_as_the_scalar_rules_take_them() {
+        if !is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let wide = is_x86_feature_detected!("avx512f");
+        let mut random = crate::test_random::XorShift::new(23);
+        let distances = [-0.5, 0.0, 0.5, 1.0, 1.0f32.next_up(), 2.0, 3.0e38, f32::MAX];
+        let slots = [0, 3, 4, 7, 1 << 31, u32::MAX - 1];
+        let random_rows = |random: &mut crate::test_random::XorShift, of: &[f32]| {
+            Rows(std::array::from_fn(|_| {
+                std::array::from_fn(|_| of[random.below(of.len() as u64) as usize])
+            }))
+        };
+        let slot_values = slots.map(f32::from_bits);
+        let weights = [0.0, 0.25, 1.0, 3.0, 7.0];
+        let (mut kept_any, mut kept_tie) = (0, 0);
+        for round in 0..4000 {
+            let any = round % 3 == 0;
+            let lanes = if wide && round % 2 == 1 { 16 } else { 8 };
+            let r = random.below(ROWS as u64 / 2) as usize * 2
+                + usize::from(lanes == 8) * random.below(2) as usize;
+            let mut search = Search {
+                t_box: random_rows(&mut random, &distances),
+                t_tri: random_rows(&mut random, &distances),
+                near_t: random_rows(&mut random, &distances),
+                near_slot: random_rows(&mut random, &slot_values),
+                b: std::array::from_fn(|_| random_rows(&mut random, &weights)),
+            };
+            let before = copy(&search);
+            let pick = |random: &mut crate::test_random::XorShift, of: &[f32]| -> Vec<f32> {
+                (0..lanes)
+                    .map(|_| of[random.below(of.len() as u64) as usize])
+                    .collect()
+            };
+            let [t, u, v, w] =
+                [&distances[..], &weights, &weights, &weights].map(|of| pick(&mut random, of));
+            let det: Vec<f32> = (0..lanes)
+                .map(|_| [1.0, 2.0, 3.0][random.below(3) as usize])
+                .collect();
+            let mask = random.next_u64() as u32 & ((1 << lanes) - 1);
+            let slot = slots[random.below(slots.len() as u64) as usize];
+            // SAFETY (both): the CPU has the features, checked above.
+            let kept = if lanes == 8 {
+                unsafe { fold8(any, &mut search, r, mask, [&t, &u, &v, &w, &det], slot) }
+            } else {
+                unsafe { fold16(any, &mut search, r, mask, [&t, &u, &v, &w, &det], slot) }
+            };
+            let mut want = copy(&before);
+            let mut want_kept = 0;
+            for i in 0..lanes {
+                let (row, l) = (r + i / 8, i % 8);
+                if mask >> i & 1 == 0 {
+                    continue;
+                }
+                if any {
+                    want_kept |= 1 << i;
+                    want.t_box.0[row][l] = f32::NEG_INFINITY;
+                    want.t_tri.0[row][l] = f32::NEG_INFINITY;
+                    continue;
+                }
+                let nearest = Nearest {
+                    t: before.near_t.0[row][l],
+                    slot: before.near_slot.0[row][l].to_bits(),
+                };
+                if !nearest.improves(t[i], slot) {
+                    continue;
+                }
+                want_kept |= 1 << i;
+                kept_tie += usize::from(t[i] == nearest.t);
+                let nearest = Nearest { t: t[i], slot };
+                let hit = Hits {
+                    t: t[i],
+                    u: u[i],
+                    v: v[i],
+                    w: w[i],
+                    det: det[i],
+                }
+                .hit_in(|x| x);
+                want.near_t.0[row][l] = nearest.t;
+                want.near_slot.0[row][l] = f32::from_bits(slot);
+                want.b[0].0[row][l] = hit.b0;
+                want.b[1].0[row][l] = hit.b1;
+                want.b[2].0[row][l] = hit.b2;
+                want.t_box.0[row][l] = nearest.horizon();
+                want.t_tri.0[row][l] = t_triangle::<false>(nearest);
+            }
+            kept_any += usize::from(want_kept != 0);
+            let why = format!("round {round}: {lanes} lanes, any {any}, row {r}");
+            assert_eq!(kept, want_kept, "{why}");
+            assert_eq!(bits(&search), bits(&want), "{why}");
+        }
+        assert!(
+            kept_any > 1000 && kept_tie > 100,
+            "{kept_any} kept, {kept_tie} ties"
+        );
+
+        fn copy(search: &Search) -> Search {
+            let rows = |x: &Rows| Rows(x.0);
+            Search {
+                t_box: rows(&search.t_box),
+                t_tri: rows(&search.t_tri),
+                near_t: rows(&search.near_t),
+                near_slot: rows(&search.near_slot),
+                b: search.b.each_ref().map(rows),
+            }
+        }
+        fn bits(search: &Search) -> Vec<u32> {
+            let rows = [
+                &search.t_box,
+                &search.t_tri,
+                &search.near_t,
+                &search.near_slot,
+            ];
+            (rows.into_iter().chain(&search.b))
+                .flat_map(|x| {
+                    x.0.as_flattened()
+                        .iter()
+                        .map(|v| v.to_bits())
+                        .collect::<Vec<_>>()
+                })
+                .collect()
+        }
+        #[target_feature(enable = "avx2")]
+        fn fold8(
+            any: bool,
+            search: &mut Search,
+            r: usize,
+            mask: u32,
+            [t, u, v, w, det]: [&[f32]; 5],
+            slot: u32,
+        ) -> u32 {
+            // SAFETY: AVX2 is enabled here; each slice holds eight floats.
+            unsafe {
+                let load = |x: &[f32]| _mm256_loadu_ps(x.as_ptr());
+                let hits = Hits {
+                    t: load(t),
+                    u: load(u),
+                    v: load(v),
+                    w: load(w),
+                    det: load(det),
+                };
+                if any {
+                    fold_row_hits8::<true>(search, r, mask, &hits, slot)
+                } else {
+                    fold_row_hits8::<false>(search, r, mask, &hits, slot)
+                }
+            }
+        }
+        #[target_feature(enable = "avx2,avx512f")]
+        fn fold16(
+            any: bool,
+            search: &mut Search,
+            r: usize,
+            mask: u32,
+            [t, u, v, w, det]: [&[f32]; 5],
+            slot: u32,
+        ) -> u32 {
+            // SAFETY: AVX-512F is enabled here; each slice holds sixteen floats.
+            unsafe {
+                let load = |x: &[f32]| _mm512_loadu_ps(x.as_ptr());
+                let hits = Hits {
+                    t: load(t),
+                    u: load(u),
+                    v: load(v),
+                    w: load(w),
+                    det: load(det),
+                };
+                if any {
+                    fold_row_hits16::<true>(search, r, mask, &hits, slot)
+                } else {
+                    fold_row_hits16::<false>(search, r, mask, &hits, slot)
+                }
+            }
+        }
+    }
+
+    /// The lanes' `next_up`, eight and (with AVX-512) sixteen at a time, is
+    /// `f32::next_up` bit for bit on every float a hit's distance can be: zeros of both
+    /// signs, subnormals, normals of both signs up to the largest finite, −∞, and random
+    /// bit patterns.
+    #[test]
+    fn next_up_in_lanes_is_f32_next_up() {
+        if !is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut random = crate::test_random::XorShift::new(5);
+        let mut values = vec![0.0, -0.0, f32::NEG_INFINITY, f32::MAX, -f32::MAX, 1.0, -1.0];
+        for bits in [1, 2, 0x007f_ffff, 0x0080_0000, 0x3f7f_ffff, 0x7f7f_fffe] {
+            values.extend([f32::from_bits(bits), -f32::from_bits(bits)]);
+        }
+        while values.len() < 4096 {
+            let x = f32::from_bits(random.next_u64() as u32);
+            if !x.is_nan() && x != f32::INFINITY {
+                values.push(x);
+            }
+        }
+        #[target_feature(enable = "avx2")]
+        fn eight(x: &[f32]) -> [f32; 8] {
+            // SAFETY: AVX2 is enabled here; `x` holds at least eight floats.
+            unsafe { crate::simd::lanes8(next_up8(_mm256_loadu_ps(x.as_ptr()))) }
+        }
+        #[target_feature(enable = "avx2,avx512f")]
+        fn sixteen(x: &[f32]) -> [f32; 16] {
+            // SAFETY: AVX-512F is enabled here; `x` holds sixteen floats.
+            unsafe { simd512::lanes16(next_up16(_mm512_loadu_ps(x.as_ptr()))) }
+        }
+        let wide = is_x86_feature_detected!("avx512f");
+        for chunk in values.chunks_exact(16) {
+            let want: Vec<u32> = chunk.iter().map(|x| x.next_up().to_bits()).collect();
+            // SAFETY (both): the CPU has the features, checked above.
+            let got: Vec<u32> = (chunk.chunks(8).flat_map(|half| unsafe { eight(half) }))
+                .map(f32::to_bits)
+                .collect();
+            assert_eq!(got, want, "eight lanes: {chunk:?}");
+            if wide {
+                let got: Vec<u32> = unsafe { sixteen(chunk) }.map(f32::to_bits).to_vec();
+                assert_eq!(got, want, "sixteen lanes: {chunk:?}");
+            }
+        }
     }
 
     /// The packet's node test of the eight boxes of `node`, in the frame it was bounded

@@ -12,7 +12,7 @@ use std::arch::x86_64::*;
 
 use crate::packet::GroupLanes;
 use crate::simd::{Hits, TriLanes, exact_edge_lanes, slab_test, watertight_test};
-use crate::triangle::{TriangleBlock, TriangleHit};
+use crate::triangle::TriangleBlock;
 
 /// Whether this CPU can run the sixteen-lane kernels (AVX-512 Foundation; the packet
 /// traversal around them needs AVX2 as well).
@@ -106,18 +106,6 @@ pub(crate) unsafe fn lanes16(x: __m512) -> [f32; 16] {
     out
 }
 
-impl Hits<__m512> {
-    /// Lane `lane` as a [`TriangleHit`].
-    ///
-    /// # Safety
-    /// Only from a function with AVX-512F enabled.
-    #[inline(always)]
-    pub(crate) unsafe fn hit(&self, lane: usize) -> TriangleHit {
-        // SAFETY: AVX-512F is enabled in the caller.
-        self.hit_in(|x| unsafe { lanes16(x) }[lane])
-    }
-}
-
 /// The float64 recomputation of the edge functions in the lanes of `on_edge`
 /// (`crate::simd`'s `exact_edges` for sixteen lanes).
 ///
@@ -148,7 +136,7 @@ unsafe fn exact_edges(
 mod tests {
     use super::*;
     use crate::test_random::XorShift;
-    use crate::triangle::{BLOCK, ShearedRay, intersect};
+    use crate::triangle::{BLOCK, ShearedRay, TriangleHit, intersect};
     use glam::Vec3;
 
     #[test]
@@ -278,6 +266,6 @@ mod tests {
     #[target_feature(enable = "avx512f")]
     unsafe fn hit_avx512(found: &Hits<__m512>, lane: usize) -> TriangleHit {
         // SAFETY: AVX-512F is enabled in this function.
-        unsafe { found.hit(lane) }
+        found.hit_in(|x| unsafe { lanes16(x) }[lane])
     }
 }

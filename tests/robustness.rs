@@ -1487,12 +1487,19 @@ fn rays_through_shared_vertices_find_the_same_nearest_hit_in_any_visiting_order(
         let mut scene = Scene::build(&geometry);
         let mut paths = Vec::new();
         if scene.uses_simd() {
-            let mut batch = vec![None; rays.len()];
-            for (r, out) in rays.chunks(64).zip(batch.chunks_mut(64)) {
-                assert!(scene.traces_as_packet(r));
-                scene.closest_hits(r, out);
+            // Packets with leaves tested eight rays wide and, with AVX-512, sixteen.
+            for (wide, name) in [(false, "packets of 8 lanes"), (true, "packets of 16 lanes")] {
+                scene.set_wide_leaves(wide);
+                if wide && !scene.uses_wide_leaves() {
+                    continue;
+                }
+                let mut batch = vec![None; rays.len()];
+                for (r, out) in rays.chunks(64).zip(batch.chunks_mut(64)) {
+                    assert!(scene.traces_as_packet(r));
+                    scene.closest_hits(r, out);
+                }
+                paths.push((name, batch));
             }
-            paths.push(("packets", batch));
             paths.push(("avx2", rays.iter().map(|r| scene.closest_hit(r)).collect()));
         }
         scene.set_simd(false);
