@@ -22,7 +22,7 @@ use std::mem::MaybeUninit;
 use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
 use crate::simd::{
-    Hits, STACK, TriLanes, block_pair_test, block_test, distance, lanes3, lanes4, pack,
+    Hits, STACK, TriLanes, block_pair_test, block_test, distance, lanes3, lanes4, lanes8, pack,
     prefetch_child, push_sorted, row_constants, row_test, slab_test,
 };
 use crate::simd512;
@@ -187,6 +187,48 @@ pub enum PacedTree {
 thread_local! {
     /// This thread's pacing of packets per [`PacedTree`].
     static PACING: [Cell<Pacing>; 2] = const { [Cell::new(Pacing::FRESH), Cell::new(Pacing::FRESH)] };
+    /// The triangles that stopped every ray of this thread's last any-hit packet that
+    /// hit, when there were at most [`Stoppers::MOST`] of them: its next any-hit packet
+    /// tests them before its traversal.
+    static STOPPERS: Cell<Stoppers> = const { Cell::new(Stoppers::NONE) };
+}
+
+/// The slots of the triangles that stopped an any-hit packet's rays, if few.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Stoppers {
+    slots: [u32; Stoppers::MOST],
+    len: usize,
+    /// A ray stopped elsewhere (by more triangles, or ray by ray): no hint.
+    spoiled: bool,
+}
+
+impl Stoppers {
+    /// The most triangles a hint holds. In a close-up, where a visible triangle spans
+    /// many packets, nearly every packet's rays are stopped by one or two.
+    const MOST: usize = 2;
+    const NONE: Stoppers = Stoppers {
+        slots: [0; Stoppers::MOST],
+        len: 0,
+        spoiled: false,
+    };
+
+    /// Notes that the triangle in `slot` stopped rays.
+    fn add(&mut self, slot: u32) {
+        if self.slots[..self.len].contains(&slot) {
+            return;
+        }
+        if self.len == Self::MOST {
+            self.spoiled = true;
+        } else {
+            self.slots[self.len] = slot;
+            self.len += 1;
+        }
+    }
+
+    /// The hint they leave for the next packet.
+    fn hint(self) -> Stoppers {
+        if self.spoiled { Stoppers::NONE } else { self }
+    }
 }
 
 /// Groups of rays traced one by one after a wasteful packet before a packet is tried
@@ -531,6 +573,118 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
     let near: [usize; 3] = [0, 1, 2].map(|a| offset(packet.octant[a], a));
     let far: [usize; 3] = [0, 1, 2].map(|a| offset(1 - packet.octant[a], a));
 
+    // The constants of row `$row` (or rows `$row` and `$row + 1`) for the row test, read
+    // by `$row_lanes`: they share the axes of ray `8 · $row`.
+    macro_rules! row_lanes {
+        ($row:expr, $row_lanes:ident) => {{
+            let [kx, ky, kz] = axes[$row * 8];
+            TriLanes {
+                kx,
+                ky,
+                kz,
+                origin_k: [kx, ky, kz].map(|a| $row_lanes(&origin[a])),
+                sx: $row_lanes(&shear_rows[0]),
+                sy: $row_lanes(&shear_rows[1]),
+                sz: $row_lanes(&shear_rows[2]),
+                tmin: $row_lanes(&tmin),
+            }
+        }};
+    }
+    // Packets over one or two large triangles are stopped by the same triangles
+    // as the last packet: tested first, they may leave nothing to traverse.
+    let mut stoppers = Stoppers::NONE;
+    let hint = if ANY { STOPPERS.get() } else { Stoppers::NONE };
+    // Reports the packet's hits, and for any hit leaves its stoppers as the thread's hint.
+    macro_rules! finish {
+        () => {{
+            let mut m = found;
+            while m != 0 {
+                let k = m.trailing_zeros() as usize;
+                m &= m - 1;
+                if ANY {
+                    any[k] = true;
+                    continue;
+                }
+                let (r, l) = (k / 8, k % 8);
+                let nearest = Nearest {
+                    t: search.near_t.0[r][l],
+                    slot: search.near_slot.0[r][l].to_bits(),
+                };
+                let [b0, b1, b2] = search.b.each_ref().map(|row| row.0[r][l]);
+                closest(
+                    k,
+                    nearest,
+                    TriangleHit {
+                        t: nearest.t,
+                        b0,
+                        b1,
+                        b2,
+                    },
+                );
+            }
+            if ANY {
+                STOPPERS.set(if found == 0 { hint } else { stoppers.hint() });
+            }
+            return Some(visits);
+        }};
+    }
+    for &slot in &hint.slots[..hint.len] {
+        // A hint may come from another tree: any of this tree's triangles will do.
+        let (b, l) = ((slot / BLOCK as u32) as usize, slot as usize % BLOCK);
+        let Some(block) = blocks.get(b) else {
+            continue;
+        };
+        if WIDE {
+            for (pair, &shared) in shared_pairs.iter().enumerate() {
+                let r = 2 * pair;
+                let mut hits = !(found >> (r * 8)) as u32 & 0xffff;
+                if shared && hits != 0 {
+                    // SAFETY: as for the row tests below.
+                    let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
+                    let row = row_lanes!(r, pair_lanes);
+                    // SAFETY: AVX-512F is enabled where `trace` inlines; `l < BLOCK`.
+                    let (mask, row_hits) =
+                        unsafe { simd512::row_test(block, l, &row, pair_lanes(&search.t_tri)) };
+                    hits &= mask;
+                    // SAFETY: as above.
+                    let kept = unsafe { fold_row_hits16::<ANY>(search, r, hits, &row_hits, slot) };
+                    found |= u64::from(kept) << (r * 8);
+                    live -= kept.count_ones() as usize;
+                    if kept != 0 {
+                        stoppers.add(slot);
+                    }
+                }
+            }
+        } else {
+            for (r, &shared) in shared_axes.iter().enumerate() {
+                let mut hits = !(found >> (r * 8)) as u32 & 0xff;
+                if shared && hits != 0 {
+                    // SAFETY: rows are 32-byte aligned arrays of eight floats.
+                    let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
+                    let row = row_lanes!(r, lane);
+                    // SAFETY: AVX2 is enabled where `trace` inlines; `l < BLOCK`.
+                    let (mask, row_hits) = unsafe { row_test(block, l, &row, lane(&search.t_tri)) };
+                    hits &= mask;
+                    // SAFETY: as above.
+                    let kept = unsafe { fold_row_hits8::<ANY>(search, r, hits, &row_hits, slot) };
+                    found |= u64::from(kept) << (r * 8);
+                    live -= kept.count_ones() as usize;
+                    if kept != 0 {
+                        stoppers.add(slot);
+                    }
+                }
+            }
+        }
+    }
+    if ANY && found != 0 {
+        if live == 0 {
+            finish!();
+        }
+        // SAFETY: AVX2 is enabled where `trace` inlines.
+        packet_tmax = unsafe { widest_horizon(&search.t_box) };
+        node_tmax = packet.node_tmax::<SHIFTED>(packet_tmax);
+    }
+
     let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
     let mut sp = 0usize;
     let mut current = 0u32;
@@ -585,17 +739,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             // clears their bits in `$hits`, and stops when none is left).
             macro_rules! row_tests {
                 ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $fold:ident) => {{
-                    let [kx, ky, kz] = axes[$row * 8];
-                    let row = TriLanes {
-                        kx,
-                        ky,
-                        kz,
-                        origin_k: [kx, ky, kz].map(|a| $row_lanes(&origin[a])),
-                        sx: $row_lanes(&shear_rows[0]),
-                        sy: $row_lanes(&shear_rows[1]),
-                        sz: $row_lanes(&shear_rows[2]),
-                        tmin: $row_lanes(&tmin),
-                    };
+                    let row = row_lanes!($row, $row_lanes);
                     'blocks: for b in first..first + count {
                         let block = &blocks[b as usize];
                         for l in 0..BLOCK {
@@ -623,6 +767,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                 if ANY {
                                     $hits &= !kept;
                                     live -= kept.count_ones() as usize;
+                                    stoppers.add(slot);
                                 }
                             }
                         }
@@ -707,6 +852,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                 }
                                 if ANY {
                                     found |= 1 << k;
+                                    stoppers.spoiled = true;
                                     search.t_box.0[r][l] = f32::NEG_INFINITY;
                                     search.t_tri.0[r][l] = f32::NEG_INFINITY;
                                     live -= 1;
@@ -778,18 +924,8 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             }
             visits.entered += u32::from(visits.entries > entries_before);
             if improved {
-                // The largest horizon: `t_box` holds each live ray's, −∞ elsewhere.
-                // SAFETY: rows are 32-byte aligned arrays of eight floats.
-                let row = |r: usize| unsafe { _mm256_load_ps(search.t_box.0[r].as_ptr()) };
-                let mut widest = row(0);
-                for r in 1..ROWS {
-                    // SAFETY: AVX2 is enabled where `trace` inlines.
-                    widest = unsafe { _mm256_max_ps(widest, row(r)) };
-                }
-                let mut lanes = [0f32; 8];
-                // SAFETY: `lanes` holds eight floats.
-                unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), widest) };
-                packet_tmax = lanes.into_iter().fold(f32::NEG_INFINITY, f32::max);
+                // SAFETY: AVX2 is enabled where `trace` inlines.
+                packet_tmax = unsafe { widest_horizon(&search.t_box) };
                 node_tmax = packet.node_tmax::<SHIFTED>(packet_tmax);
             }
         }
@@ -801,34 +937,26 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             unsafe { pop_within(&stack, &mut sp, packet_tmax) }
         };
         let Some(next) = next else {
-            let mut m = found;
-            while m != 0 {
-                let k = m.trailing_zeros() as usize;
-                m &= m - 1;
-                if ANY {
-                    any[k] = true;
-                    continue;
-                }
-                let (r, l) = (k / 8, k % 8);
-                let nearest = Nearest {
-                    t: search.near_t.0[r][l],
-                    slot: search.near_slot.0[r][l].to_bits(),
-                };
-                let [b0, b1, b2] = search.b.each_ref().map(|row| row.0[r][l]);
-                closest(
-                    k,
-                    nearest,
-                    TriangleHit {
-                        t: nearest.t,
-                        b0,
-                        b1,
-                        b2,
-                    },
-                );
-            }
-            return Some(visits);
+            finish!();
         };
         current = next;
+    }
+}
+
+/// The largest horizon in `t_box`, which holds each live ray's and −∞ elsewhere.
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn widest_horizon(t_box: &Rows) -> f32 {
+    // SAFETY: AVX2 is enabled in the caller; rows are 32-byte aligned arrays of eight floats.
+    unsafe {
+        let row = |r: usize| _mm256_load_ps(t_box.0[r].as_ptr());
+        let mut widest = row(0);
+        for r in 1..ROWS {
+            widest = _mm256_max_ps(widest, row(r));
+        }
+        lanes8(widest).into_iter().fold(f32::NEG_INFINITY, f32::max)
     }
 }
 
@@ -1440,6 +1568,100 @@ mod tests {
         );
         assert!(worth_trying(tree) && !super::scattered(tree));
         assert!(!super::scattered(PacedTree::Spheres));
+    }
+
+    /// An any-hit packet whose rays were all stopped by one or two triangles leaves them
+    /// to the thread's next packet, which tests them first: a neighbouring packet over the
+    /// same large triangle is then answered without reaching a leaf. The answers are
+    /// always those of every triangle tested ray by ray: for packets wholly on the large
+    /// triangles, partly off them, wholly off them, and after a hint from another tree
+    /// whose slots this one does not have or holds other triangles in; at both widths.
+    #[test]
+    fn an_any_hit_packet_tests_first_the_triangles_that_stopped_the_last_one() {
+        if !is_x86_feature_detected!("avx2") {
+            return;
+        }
+        // Two triangles making the square |x|, |y| < 1 at z = 4, and small triangles
+        // scattered off to the side behind it (x from 2 to 4), where the rays through the
+        // square never pass.
+        let mut random = crate::test_random::XorShift::new(31);
+        let mut big = vec![
+            [[-1.0, -1.0, 4.0], [1.0, -1.0, 4.0], [1.0, 1.0, 4.0]],
+            [[-1.0, -1.0, 4.0], [1.0, 1.0, 4.0], [-1.0, 1.0, 4.0]],
+        ];
+        let mut coordinate = |scale: f32| (random.unit_f32() - 0.5) * scale;
+        for _ in 0..300 {
+            let corner = [
+                3.0 + coordinate(2.0),
+                coordinate(8.0),
+                6.0 + coordinate(2.0),
+            ];
+            big.push(
+                [0, 1, 2]
+                    .map(|v| std::array::from_fn(|a| corner[a] + if a == v { 0.3 } else { 0.0 })),
+            );
+        }
+        let small = big[2..40].to_vec();
+        let build = |triangles: &[[[f32; 3]; 3]]| {
+            crate::scene::build_triangles(triangles, crate::bvh::BuildPreset::default())
+        };
+        let with_square = build(&big);
+        // The 8 × 8 rays from the origin through a tile whose corner is at `(x, y)` on the
+        // plane z = 4, a ray every 0.01.
+        let tile = |x: f32, y: f32| -> Vec<TriangleRay> {
+            (0..PACKET)
+                .map(|i| TriangleRay {
+                    origin: [0.0; 3],
+                    direction: [x + 0.01 * (i % 8) as f32, y + 0.01 * (i / 8) as f32, 4.0],
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                })
+                .collect()
+        };
+        let truth = |triangles: &[[[f32; 3]; 3]], rays: &[TriangleRay]| -> Vec<bool> {
+            (rays.iter())
+                .map(|ray| {
+                    triangles.iter().any(|&[a, b, c]| {
+                        crate::triangle::intersect(&ray.sheared(), a, b, c, ray.tmin, ray.tmax)
+                            .is_some()
+                    })
+                })
+                .collect()
+        };
+        let mut lanes = vec![LeafLanes::Eight];
+        if simd512::available() {
+            lanes.push(LeafLanes::Sixteen);
+        }
+        for lanes in lanes {
+            let trace = |(blocks, bvh): &(Vec<TriangleBlock>, Bvh<f32>), rays: &[TriangleRay]| {
+                let mut out = vec![false; rays.len()];
+                // SAFETY: the CPU has the lanes' features (checked above); the tree is shallow.
+                let visits = unsafe { any(lanes, bvh, blocks, rays, &mut out) }.unwrap();
+                (out, visits)
+            };
+            STOPPERS.set(Stoppers::NONE);
+            let on_square = tile(-0.5, -0.5);
+            let (hits, first) = trace(&with_square, &on_square);
+            assert!(hits.iter().all(|&h| h) && first.leaves > 0, "{lanes:?}");
+            // The next tile over the square needs no leaf.
+            let next = tile(0.2, -0.5);
+            let (hits, visits) = trace(&with_square, &next);
+            assert!(hits.iter().all(|&h| h), "{lanes:?}");
+            assert_eq!(visits.leaves, 0, "{lanes:?}");
+            // Tiles across the square's edge and beyond it, each after a hint.
+            for (x, y) in [(0.95, 0.2), (-1.03, -0.5), (1.5, 1.5), (0.3, 0.3)] {
+                let rays = tile(x, y);
+                let (hits, _) = trace(&with_square, &rays);
+                assert_eq!(hits, truth(&big, &rays), "{lanes:?} at {x}, {y}");
+            }
+            // A hint from the first tree in smaller ones, whose slots hold other triangles
+            // or none: no ray through the square hits them.
+            for triangles in [&small[..], &small[..1]] {
+                assert!(trace(&with_square, &on_square).0.iter().all(|&h| h));
+                let (hits, _) = trace(&build(triangles), &on_square);
+                assert_eq!(hits, truth(triangles, &on_square), "{lanes:?}");
+            }
+        }
     }
 
     /// A row test's hits are taken as the scalar rules take them one ray at a time: for

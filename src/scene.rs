@@ -1373,7 +1373,7 @@ fn prefetch_triangle(triangles: &[[[f32; 3]; 3]], i: usize) {
     let _ = (triangles, i);
 }
 
-fn build_triangles(
+pub(crate) fn build_triangles(
     triangles: &[[[f32; 3]; 3]],
     preset: BuildPreset,
 ) -> (Vec<TriangleBlock>, Bvh<f32>) {
