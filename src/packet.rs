@@ -960,6 +960,23 @@ unsafe fn widest_horizon(t_box: &Rows) -> f32 {
     }
 }
 
+/// The closest-hit end of [`fold_row_hits8`] and [`fold_row_hits16`]: writes the hit
+/// values of the kept `$lanes` into `$search`'s rows through `$put` (a blend into a row),
+/// with the width's division, product, broadcast and `next_up`.
+macro_rules! keep_in_rows {
+    ($search:expr, $hits:expr, $slot_lanes:expr, $lanes:expr, $put:ident,
+     $div:ident, $mul:ident, $set1:ident, $next_up:ident) => {{
+        let (search, hits, lanes) = ($search, $hits, $lanes);
+        $put(&mut search.near_t, hits.t, lanes);
+        $put(&mut search.near_slot, $slot_lanes, lanes);
+        for (row, weight) in search.b.iter_mut().zip([hits.u, hits.v, hits.w]) {
+            $put(row, $div(weight, hits.det), lanes);
+        }
+        $put(&mut search.t_box, $mul(hits.t, $set1(SEARCH_MARGIN)), lanes);
+        $put(&mut search.t_tri, $next_up(hits.t), lanes);
+    }};
+}
+
 /// Takes the hits in lanes `mask` of a row test (of the triangle in `slot` against row
 /// `r`, its values in `hits`) into `search`. Closest hit keeps each that improves on its
 /// ray's [`Nearest`] (nearer, or as near from a lower slot), with its weights, horizon and
@@ -1016,19 +1033,9 @@ unsafe fn fold_row_hits8<const ANY: bool>(
         if kept == 0 {
             return 0;
         }
-        let lanes = lanes_of(kept);
-        put(&mut search.near_t, hits.t, lanes);
-        put(
-            &mut search.near_slot,
-            _mm256_castsi256_ps(slot_lanes),
-            lanes,
-        );
-        for (row, weight) in search.b.iter_mut().zip([hits.u, hits.v, hits.w]) {
-            put(row, _mm256_div_ps(weight, hits.det), lanes);
-        }
-        let margin = _mm256_set1_ps(SEARCH_MARGIN);
-        put(&mut search.t_box, _mm256_mul_ps(hits.t, margin), lanes);
-        put(&mut search.t_tri, next_up8(hits.t), lanes);
+        let slot_lanes = _mm256_castsi256_ps(slot_lanes);
+        keep_in_rows! { search, hits, slot_lanes, lanes_of(kept), put,
+        _mm256_div_ps, _mm256_mul_ps, _mm256_set1_ps, next_up8 }
         kept
     }
 }
@@ -1069,19 +1076,9 @@ unsafe fn fold_row_hits16<const ANY: bool>(
         if kept == 0 {
             return 0;
         }
-        let lanes = kept as __mmask16;
-        put(&mut search.near_t, hits.t, lanes);
-        put(
-            &mut search.near_slot,
-            _mm512_castsi512_ps(slot_lanes),
-            lanes,
-        );
-        for (row, weight) in search.b.iter_mut().zip([hits.u, hits.v, hits.w]) {
-            put(row, _mm512_div_ps(weight, hits.det), lanes);
-        }
-        let margin = _mm512_set1_ps(SEARCH_MARGIN);
-        put(&mut search.t_box, _mm512_mul_ps(hits.t, margin), lanes);
-        put(&mut search.t_tri, next_up16(hits.t), lanes);
+        let slot_lanes = _mm512_castsi512_ps(slot_lanes);
+        keep_in_rows! { search, hits, slot_lanes, kept as __mmask16, put,
+        _mm512_div_ps, _mm512_mul_ps, _mm512_set1_ps, next_up16 }
         kept
     }
 }
@@ -1793,58 +1790,34 @@ mod tests {
                 })
                 .collect()
         }
-        #[target_feature(enable = "avx2")]
-        fn fold8(
-            any: bool,
-            search: &mut Search,
-            r: usize,
-            mask: u32,
-            [t, u, v, w, det]: [&[f32]; 5],
-            slot: u32,
-        ) -> u32 {
-            // SAFETY: AVX2 is enabled here; each slice holds eight floats.
-            unsafe {
-                let load = |x: &[f32]| _mm256_loadu_ps(x.as_ptr());
-                let hits = Hits {
-                    t: load(t),
-                    u: load(u),
-                    v: load(v),
-                    w: load(w),
-                    det: load(det),
-                };
-                if any {
-                    fold_row_hits8::<true>(search, r, mask, &hits, slot)
-                } else {
-                    fold_row_hits8::<false>(search, r, mask, &hits, slot)
+        // `$name`: the fold `$fold` of the lane values in the slices, loaded by `$load`.
+        macro_rules! fold_in_lanes {
+            ($name:ident, $features:literal, $load:ident, $fold:ident) => {
+                #[target_feature(enable = $features)]
+                fn $name(
+                    any: bool,
+                    search: &mut Search,
+                    r: usize,
+                    mask: u32,
+                    [t, u, v, w, det]: [&[f32]; 5],
+                    slot: u32,
+                ) -> u32 {
+                    // SAFETY: the features are enabled here; each slice fills a vector.
+                    unsafe {
+                        let load = |x: &[f32]| $load(x.as_ptr());
+                        let (t, u, v, w, det) = (load(t), load(u), load(v), load(w), load(det));
+                        let hits = Hits { t, u, v, w, det };
+                        if any {
+                            $fold::<true>(search, r, mask, &hits, slot)
+                        } else {
+                            $fold::<false>(search, r, mask, &hits, slot)
+                        }
+                    }
                 }
-            }
+            };
         }
-        #[target_feature(enable = "avx2,avx512f")]
-        fn fold16(
-            any: bool,
-            search: &mut Search,
-            r: usize,
-            mask: u32,
-            [t, u, v, w, det]: [&[f32]; 5],
-            slot: u32,
-        ) -> u32 {
-            // SAFETY: AVX-512F is enabled here; each slice holds sixteen floats.
-            unsafe {
-                let load = |x: &[f32]| _mm512_loadu_ps(x.as_ptr());
-                let hits = Hits {
-                    t: load(t),
-                    u: load(u),
-                    v: load(v),
-                    w: load(w),
-                    det: load(det),
-                };
-                if any {
-                    fold_row_hits16::<true>(search, r, mask, &hits, slot)
-                } else {
-                    fold_row_hits16::<false>(search, r, mask, &hits, slot)
-                }
-            }
-        }
+        fold_in_lanes!(fold8, "avx2", _mm256_loadu_ps, fold_row_hits8);
+        fold_in_lanes!(fold16, "avx2,avx512f", _mm512_loadu_ps, fold_row_hits16);
     }
 
     /// The lanes' `next_up`, eight and (with AVX-512) sixteen at a time, is
