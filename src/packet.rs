@@ -529,6 +529,8 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 store(&raw mut (*fill).inv[a], row.inv[a]);
                 store(&raw mut (*fill).inv_far[a], row.inv_far[a]);
                 store(&raw mut (*fill).shear[a], row.shear[a]);
+                // Read (and kept) by the folds' blends before any hit is written.
+                store(&raw mut (*fill).search.b[a], _mm256_setzero_ps());
             }
             store(&raw mut (*fill).tmin, row.tmin);
             for (l, &axes) in row_axes.iter().enumerate() {
