@@ -334,9 +334,10 @@ struct Search {
     /// Closest hit only; any hit leaves them as they start.
     near_t: Rows,
     near_slot: Rows,
-    /// The barycentric weights of that hit ([`TriangleHit`]), where the packet's `found`
-    /// has the ray's bit.
-    b: [Rows; 3],
+    /// The barycentric weights of that hit ([`TriangleHit`]): written, and read, only
+    /// where the packet's `found` has the ray's bit (the folds store them masked, so
+    /// nothing reads the rest, and the set-up need not write them).
+    b: [MaybeUninit<Rows>; 3],
 }
 
 /// Closest hits of up to [`PACKET`] rays traced together: `found(i, nearest, hit)` is
@@ -529,8 +530,6 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 store(&raw mut (*fill).inv[a], row.inv[a]);
                 store(&raw mut (*fill).inv_far[a], row.inv_far[a]);
                 store(&raw mut (*fill).shear[a], row.shear[a]);
-                // Read (and kept) by the folds' blends before any hit is written.
-                store(&raw mut (*fill).search.b[a], _mm256_setzero_ps());
             }
             store(&raw mut (*fill).tmin, row.tmin);
             for (l, &axes) in row_axes.iter().enumerate() {
@@ -549,7 +548,8 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             }
         }
     }
-    // SAFETY: the loop above wrote every field, every row and every ray of `storage`.
+    // SAFETY: the loop above wrote every field, every row and every ray of `storage`,
+    // but for the weights, which stay `MaybeUninit`.
     let RayRows {
         origin,
         inv,
@@ -612,7 +612,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     t: search.near_t.0[r][l],
                     slot: search.near_slot.0[r][l].to_bits(),
                 };
-                let [b0, b1, b2] = search.b.each_ref().map(|row| row.0[r][l]);
+                // SAFETY: ray `k`'s weights were written with its `found` bit.
+                let [b0, b1, b2] = search
+                    .b
+                    .each_ref()
+                    .map(|row| unsafe { (*row.as_ptr()).0[r][l] });
                 closest(
                     k,
                     nearest,
@@ -873,7 +877,8 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                 search.near_slot.0[r][l] = f32::from_bits(nearest.slot);
                                 let weights = [hit.b0, hit.b1, hit.b2];
                                 for (row, weight) in search.b.iter_mut().zip(weights) {
-                                    row.0[r][l] = weight;
+                                    // SAFETY: a place of the row, written through its pointer.
+                                    unsafe { (*row.as_mut_ptr()).0[r][l] = weight };
                                 }
                             }
                         }
@@ -963,16 +968,17 @@ unsafe fn widest_horizon(t_box: &Rows) -> f32 {
 }
 
 /// The closest-hit end of [`fold_row_hits8`] and [`fold_row_hits16`]: writes the hit
-/// values of the kept `$lanes` into `$search`'s rows through `$put` (a blend into a row),
-/// with the width's division, product, broadcast and `next_up`.
+/// values of the kept `$lanes` into `$search`'s rows through `$put` (a blend into a row)
+/// and, for the weights, `$store_kept` (a masked store), with the width's division,
+/// product, broadcast and `next_up`.
 macro_rules! keep_in_rows {
-    ($search:expr, $hits:expr, $slot_lanes:expr, $lanes:expr, $put:ident,
+    ($search:expr, $hits:expr, $slot_lanes:expr, $lanes:expr, $put:ident, $store_kept:ident,
      $div:ident, $mul:ident, $set1:ident, $next_up:ident) => {{
         let (search, hits, lanes) = ($search, $hits, $lanes);
         $put(&mut search.near_t, hits.t, lanes);
         $put(&mut search.near_slot, $slot_lanes, lanes);
         for (row, weight) in search.b.iter_mut().zip([hits.u, hits.v, hits.w]) {
-            $put(row, $div(weight, hits.det), lanes);
+            $store_kept(row.as_mut_ptr(), $div(weight, hits.det), lanes);
         }
         $put(&mut search.t_box, $mul(hits.t, $set1(SEARCH_MARGIN)), lanes);
         $put(&mut search.t_tri, $next_up(hits.t), lanes);
@@ -1036,7 +1042,11 @@ unsafe fn fold_row_hits8<const ANY: bool>(
             return 0;
         }
         let slot_lanes = _mm256_castsi256_ps(slot_lanes);
-        keep_in_rows! { search, hits, slot_lanes, lanes_of(kept), put,
+        let store_kept = |rows: *mut Rows, x: __m256, lanes: __m256| {
+            let place = (&raw mut (*rows).0[r]).cast::<f32>();
+            _mm256_maskstore_ps(place, _mm256_castps_si256(lanes), x);
+        };
+        keep_in_rows! { search, hits, slot_lanes, lanes_of(kept), put, store_kept,
         _mm256_div_ps, _mm256_mul_ps, _mm256_set1_ps, next_up8 }
         kept
     }
@@ -1079,7 +1089,10 @@ unsafe fn fold_row_hits16<const ANY: bool>(
             return 0;
         }
         let slot_lanes = _mm512_castsi512_ps(slot_lanes);
-        keep_in_rows! { search, hits, slot_lanes, kept as __mmask16, put,
+        let store_kept = |rows: *mut Rows, x: __m512, lanes: __mmask16| {
+            _mm512_mask_store_ps((&raw mut (*rows).0[r]).cast::<f32>(), lanes, x);
+        };
+        keep_in_rows! { search, hits, slot_lanes, kept as __mmask16, put, store_kept,
         _mm512_div_ps, _mm512_mul_ps, _mm512_set1_ps, next_up16 }
         kept
     }
@@ -1696,7 +1709,7 @@ mod tests {
                 t_tri: random_rows(&mut random, &distances),
                 near_t: random_rows(&mut random, &distances),
                 near_slot: random_rows(&mut random, &slot_values),
-                b: std::array::from_fn(|_| random_rows(&mut random, &weights)),
+                b: std::array::from_fn(|_| MaybeUninit::new(random_rows(&mut random, &weights))),
             };
             let before = copy(&search);
             let pick = |random: &mut crate::test_random::XorShift, of: &[f32]| -> Vec<f32> {
@@ -1750,9 +1763,10 @@ mod tests {
                 .hit_in(|x| x);
                 want.near_t.0[row][l] = nearest.t;
                 want.near_slot.0[row][l] = f32::from_bits(slot);
-                want.b[0].0[row][l] = hit.b0;
-                want.b[1].0[row][l] = hit.b1;
-                want.b[2].0[row][l] = hit.b2;
+                for (b, weight) in want.b.iter_mut().zip([hit.b0, hit.b1, hit.b2]) {
+                    // SAFETY: the test's weight rows are all written.
+                    unsafe { b.assume_init_mut() }.0[row][l] = weight;
+                }
                 want.t_box.0[row][l] = nearest.horizon();
                 want.t_tri.0[row][l] = t_triangle::<false>(nearest);
             }
@@ -1766,6 +1780,11 @@ mod tests {
             "{kept_any} kept, {kept_tie} ties"
         );
 
+        // The test writes every weight row whole.
+        fn weight_rows(search: &Search) -> [&Rows; 3] {
+            // SAFETY: as above.
+            search.b.each_ref().map(|b| unsafe { b.assume_init_ref() })
+        }
         fn copy(search: &Search) -> Search {
             let rows = |x: &Rows| Rows(x.0);
             Search {
@@ -1773,7 +1792,7 @@ mod tests {
                 t_tri: rows(&search.t_tri),
                 near_t: rows(&search.near_t),
                 near_slot: rows(&search.near_slot),
-                b: search.b.each_ref().map(rows),
+                b: weight_rows(search).map(|x| MaybeUninit::new(rows(x))),
             }
         }
         fn bits(search: &Search) -> Vec<u32> {
@@ -1783,7 +1802,7 @@ mod tests {
                 &search.near_t,
                 &search.near_slot,
             ];
-            (rows.into_iter().chain(&search.b))
+            (rows.into_iter().chain(weight_rows(search)))
                 .flat_map(|x| {
                     x.0.as_flattened()
                         .iter()
