@@ -640,44 +640,46 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
         let Some(block) = blocks.get(b) else {
             continue;
         };
+        // The triangle against the rays of row `$r` (and `$r + 1`: `$all` has a bit per
+        // lane) still searching, as `row_tests` below tests a leaf's.
+        macro_rules! hint_row {
+            ($r:expr, $all:expr, $row_lanes:ident, $test:path, $fold:ident) => {{
+                let r = $r;
+                let searching = !(found >> (r * 8)) as u32 & $all;
+                if searching != 0 {
+                    let row = row_lanes!(r, $row_lanes);
+                    // SAFETY: the width's features are enabled where `trace` inlines;
+                    // `l < BLOCK`.
+                    let (mask, row_hits) =
+                        unsafe { $test(block, l, &row, $row_lanes(&search.t_tri)) };
+                    if mask & searching != 0 {
+                        // SAFETY: as above.
+                        let kept =
+                            unsafe { $fold::<ANY>(search, r, mask & searching, &row_hits, slot) };
+                        found |= u64::from(kept) << (r * 8);
+                        live -= kept.count_ones() as usize;
+                        if kept != 0 {
+                            stoppers.add(slot);
+                        }
+                    }
+                }
+            }};
+        }
         if WIDE {
             for (pair, &shared) in shared_pairs.iter().enumerate() {
                 let r = 2 * pair;
-                let mut hits = !(found >> (r * 8)) as u32 & 0xffff;
-                if shared && hits != 0 {
-                    // SAFETY: as for the row tests below.
-                    let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
-                    let row = row_lanes!(r, pair_lanes);
-                    // SAFETY: AVX-512F is enabled where `trace` inlines; `l < BLOCK`.
-                    let (mask, row_hits) =
-                        unsafe { simd512::row_test(block, l, &row, pair_lanes(&search.t_tri)) };
-                    hits &= mask;
-                    // SAFETY: as above.
-                    let kept = unsafe { fold_row_hits16::<ANY>(search, r, hits, &row_hits, slot) };
-                    found |= u64::from(kept) << (r * 8);
-                    live -= kept.count_ones() as usize;
-                    if kept != 0 {
-                        stoppers.add(slot);
-                    }
+                // SAFETY: as for the row tests below.
+                let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
+                if shared {
+                    hint_row!(r, 0xffff, pair_lanes, simd512::row_test, fold_row_hits16);
                 }
             }
         } else {
             for (r, &shared) in shared_axes.iter().enumerate() {
-                let mut hits = !(found >> (r * 8)) as u32 & 0xff;
-                if shared && hits != 0 {
-                    // SAFETY: rows are 32-byte aligned arrays of eight floats.
-                    let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
-                    let row = row_lanes!(r, lane);
-                    // SAFETY: AVX2 is enabled where `trace` inlines; `l < BLOCK`.
-                    let (mask, row_hits) = unsafe { row_test(block, l, &row, lane(&search.t_tri)) };
-                    hits &= mask;
-                    // SAFETY: as above.
-                    let kept = unsafe { fold_row_hits8::<ANY>(search, r, hits, &row_hits, slot) };
-                    found |= u64::from(kept) << (r * 8);
-                    live -= kept.count_ones() as usize;
-                    if kept != 0 {
-                        stoppers.add(slot);
-                    }
+                // SAFETY: rows are 32-byte aligned arrays of eight floats.
+                let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
+                if shared {
+                    hint_row!(r, 0xff, lane, row_test, fold_row_hits8);
                 }
             }
         }
@@ -1016,9 +1018,9 @@ unsafe fn fold_row_hits8<const ANY: bool>(
             _mm256_store_ps(rows.0[r].as_mut_ptr(), x);
         };
         if ANY {
-            let done = _mm256_set1_ps(f32::NEG_INFINITY);
-            put(&mut search.t_box, done, lanes_of(mask));
-            put(&mut search.t_tri, done, lanes_of(mask));
+            let (done, lanes) = (_mm256_set1_ps(f32::NEG_INFINITY), lanes_of(mask));
+            put(&mut search.t_box, done, lanes);
+            put(&mut search.t_tri, done, lanes);
             return mask;
         }
         let nearest_t = load(&search.near_t);
