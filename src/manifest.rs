@@ -240,8 +240,8 @@ impl Manifest {
         // Read plainly first; only a manifest that fails is read again, tracking the path
         // of the value being read, to name the failing key. (Tracking it for every value
         // read slowed a manifest of many spheres: BENCHMARKS.md, history.)
-        let raw = match serde_json::from_slice::<raw::Manifest>(text) {
-            Ok(raw) => raw,
+        let raw = match serde_json::from_slice::<raw::Object<raw::Manifest>>(text) {
+            Ok(raw::Object(raw)) => raw,
             Err(error) => return Err(json_failure(text, error)),
         };
         validate(raw, path)
@@ -252,7 +252,7 @@ impl Manifest {
 /// again, tracking the path of the value being read.
 fn json_failure(text: &[u8], error: serde_json::Error) -> ManifestError {
     let mut deserializer = serde_json::Deserializer::from_slice(text);
-    match serde_path_to_error::deserialize::<_, raw::Manifest>(&mut deserializer) {
+    match serde_path_to_error::deserialize::<_, raw::Object<raw::Manifest>>(&mut deserializer) {
         Err(tracked) => json_error(tracked.path().to_string(), tracked.into_inner()),
         // After the value: trailing text, which has no key.
         Ok(_) => json_error(String::new(), deserializer.end().err().unwrap_or(error)),
@@ -278,31 +278,90 @@ fn json_error(key: String, error: serde_json::Error) -> ManifestError {
 /// The manifest exactly as written: serde shapes, no defaults applied, no rules checked.
 mod raw {
     use std::collections::BTreeMap;
+    use std::marker::PhantomData;
 
     use serde::Deserialize;
+    use serde::de::value::MapAccessDeserializer;
+    use serde::de::{Deserializer, MapAccess, Visitor};
 
     use super::{Encoding, PpmStyle};
 
     pub type Vec3 = [f64; 3];
 
+    /// A `T` read from a JSON object, and only from one: serde's derived structs (and
+    /// internally tagged enums) also take an array of their fields in order, so that
+    /// `"image": [640, 480]` would pass unnoticed.
+    pub struct Object<T>(pub T);
+
+    impl<'de, T: Deserialize<'de>> Deserialize<'de> for Object<T> {
+        fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+            struct ObjectVisitor<T>(PhantomData<T>);
+            impl<'de, T: Deserialize<'de>> Visitor<'de> for ObjectVisitor<T> {
+                type Value = T;
+                fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                    f.write_str("a JSON object")
+                }
+                fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<T, A::Error> {
+                    T::deserialize(MapAccessDeserializer::new(map))
+                }
+            }
+            let object = deserializer.deserialize_map(ObjectVisitor(PhantomData))?;
+            Ok(Object(object))
+        }
+    }
+
+    /// `#[serde(deserialize_with)]` readers of fields that hold objects (see [`Object`]).
+    fn object<'de, D: Deserializer<'de>, T: Deserialize<'de>>(d: D) -> Result<T, D::Error> {
+        Object::deserialize(d).map(|Object(x)| x)
+    }
+
+    fn optional_object<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
+        d: D,
+    ) -> Result<Option<T>, D::Error> {
+        Ok(Option::<Object<T>>::deserialize(d)?.map(|Object(x)| x))
+    }
+
+    fn objects<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
+        d: D,
+    ) -> Result<Option<Vec<T>>, D::Error> {
+        let list = Option::<Vec<Object<T>>>::deserialize(d)?;
+        Ok(list.map(|list| list.into_iter().map(|Object(x)| x).collect()))
+    }
+
+    fn named_objects<'de, D: Deserializer<'de>, T: Deserialize<'de>>(
+        d: D,
+    ) -> Result<Option<BTreeMap<String, T>>, D::Error> {
+        let named = Option::<BTreeMap<String, Object<T>>>::deserialize(d)?;
+        Ok(named.map(|named| named.into_iter().map(|(k, Object(x))| (k, x)).collect()))
+    }
+
     #[derive(Deserialize)]
     #[serde(deny_unknown_fields)]
     pub struct Manifest {
         pub version: Option<i64>,
+        #[serde(deserialize_with = "object")]
         pub image: Image,
         pub output: Option<String>,
         pub ppm: Option<PpmStyle>,
         pub encoding: Option<Encoding>,
+        #[serde(default, deserialize_with = "optional_object")]
         pub camera: Option<Camera>,
         pub tmin: Option<f64>,
         pub tmax: Option<f64>,
         pub background: Option<Vec3>,
+        #[serde(default, deserialize_with = "optional_object")]
         pub integrator: Option<Integrator>,
+        #[serde(default, deserialize_with = "optional_object")]
         pub sampler: Option<Sampler>,
+        #[serde(default, deserialize_with = "named_objects")]
         pub materials: Option<BTreeMap<String, Material>>,
+        #[serde(default, deserialize_with = "objects")]
         pub spheres: Option<Vec<Sphere>>,
+        #[serde(default, deserialize_with = "objects")]
         pub planes: Option<Vec<Plane>>,
+        #[serde(default, deserialize_with = "objects")]
         pub meshes: Option<Vec<Mesh>>,
+        #[serde(default, deserialize_with = "objects")]
         pub lights: Option<Vec<Light>>,
     }
 
@@ -383,6 +442,7 @@ mod raw {
     #[serde(deny_unknown_fields)]
     pub struct Mesh {
         pub file: String,
+        #[serde(default, deserialize_with = "optional_object")]
         pub transform: Option<Transform>,
         pub material: Option<String>,
     }
@@ -393,6 +453,7 @@ mod raw {
         pub matrix: Option<[f64; 16]>,
         /// A number or three numbers; checked by hand for a clear message.
         pub scale: Option<serde_json::Value>,
+        #[serde(default, deserialize_with = "optional_object")]
         pub rotate: Option<Rotate>,
         pub translate: Option<Vec3>,
     }

@@ -24,7 +24,33 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
         (
             "array.json",
             "[1, 2]".to_string(),
-            vec!["line 1", "expected struct"],
+            vec!["line 1", "expected a JSON object"],
+        ),
+        // serde would read an array as a struct's fields in order; objects must be objects.
+        (
+            "image-array.json",
+            r#"{"image": [4, 3]}"#.to_string(),
+            vec!["image", "expected a JSON object"],
+        ),
+        (
+            "sphere-array.json",
+            m(r#""spheres": [[[0, 0, 3], 1, null]]"#),
+            vec!["spheres[0]", "expected a JSON object"],
+        ),
+        (
+            "integrator-array.json",
+            m(r#""integrator": ["depth", 2]"#),
+            vec!["integrator", "expected a JSON object"],
+        ),
+        (
+            "rotate-array.json",
+            m(r#""meshes": [{"file": "m.obj", "transform": {"rotate": [[0, 1, 0], 30]}}]"#),
+            vec!["meshes[0].transform.rotate", "expected a JSON object"],
+        ),
+        (
+            "material-array.json",
+            m(r#""materials": {"red": [[1, 0, 0], null]}"#),
+            vec!["materials.red", "expected a JSON object"],
         ),
         (
             "unknown-key.json",
