@@ -475,6 +475,16 @@ mod raw {
 
 type Result<T> = std::result::Result<T, ManifestError>;
 
+/// A number as an error message shows it: as Rust prints it, but in scientific notation
+/// where that would run to many digits (`1e300`, not three hundred digits; `1e-9`).
+fn shown(x: f64) -> String {
+    if x == 0.0 || !x.is_finite() || (1e-4..1e16).contains(&x.abs()) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
 fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
     let folder = path.parent().unwrap_or(Path::new(""));
 
@@ -517,7 +527,11 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
     if tmax <= tmin {
         return Err(ManifestError::invalid(
             "tmax",
-            format!("must be greater than tmin ({tmin}), got {tmax}"),
+            format!(
+                "must be greater than tmin ({}), got {}",
+                shown(tmin),
+                shown(tmax)
+            ),
         ));
     }
 
@@ -550,7 +564,10 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
         if !(radius > 0.0 && radius <= MAX_MAGNITUDE) {
             return Err(ManifestError::invalid(
                 key("radius").spell(),
-                format!("must be greater than 0 (and at most {MAX_MAGNITUDE:e}), got {radius}"),
+                format!(
+                    "must be greater than 0 (and at most {MAX_MAGNITUDE:e}), got {}",
+                    shown(radius)
+                ),
             ));
         }
         let material = material(&key("material"), s.material)?;
@@ -735,7 +752,10 @@ fn camera_desc(c: raw::Camera) -> Result<CameraDesc> {
         if !(vfov > 0.0 && vfov < 180.0) {
             return Err(ManifestError::invalid(
                 "camera.vfov",
-                format!("must lie strictly between 0 and 180 degrees, got {vfov}"),
+                format!(
+                    "must lie strictly between 0 and 180 degrees, got {}",
+                    shown(vfov)
+                ),
             ));
         }
         if from == at {
@@ -783,7 +803,7 @@ fn camera_desc(c: raw::Camera) -> Result<CameraDesc> {
             if f <= 0.0 {
                 return Err(ManifestError::invalid(
                     "camera.focus_distance",
-                    format!("must be greater than 0, got {f}"),
+                    format!("must be greater than 0, got {}", shown(f)),
                 ));
             }
             Some(f)
@@ -818,7 +838,7 @@ fn integrator_desc(raw: Option<raw::Integrator>) -> Result<IntegratorDesc> {
             if scale <= 0.0 {
                 return Err(ManifestError::invalid(
                     "integrator.scale",
-                    format!("must be greater than 0, got {scale}"),
+                    format!("must be greater than 0, got {}", shown(scale)),
                 ));
             }
             IntegratorDesc::Depth { scale }
@@ -908,7 +928,10 @@ fn materials(
                 if !(ior > 0.0 && ior <= 100.0) {
                     return Err(ManifestError::invalid(
                         key("ior"),
-                        format!("must be greater than 0 (and at most 100), got {ior}"),
+                        format!(
+                            "must be greater than 0 (and at most 100), got {}",
+                            shown(ior)
+                        ),
                     ));
                 }
                 (MaterialKind::Dielectric { ior }, emission)
@@ -1037,7 +1060,7 @@ fn finite_at_least(key: &(impl Key + ?Sized), x: f64, min: f64) -> Result<f64> {
     if x < min {
         return Err(ManifestError::invalid(
             key.spell(),
-            format!("must be at least {min}, got {x}"),
+            format!("must be at least {}, got {}", shown(min), shown(x)),
         ));
     }
     Ok(x)
@@ -1048,7 +1071,10 @@ fn bounded(key: &(impl Key + ?Sized), x: f64) -> Result<f64> {
     if x.abs() > MAX_MAGNITUDE {
         return Err(ManifestError::invalid(
             key.spell(),
-            format!("{x} is out of range (magnitudes up to {MAX_MAGNITUDE:e} are accepted)"),
+            format!(
+                "{} is out of range (magnitudes up to {MAX_MAGNITUDE:e} are accepted)",
+                shown(x)
+            ),
         ));
     }
     Ok(x)
@@ -1080,7 +1106,7 @@ fn colour(key: &str, c: raw::Vec3) -> Result<Rgb> {
         if x < 0.0 {
             return Err(ManifestError::invalid(
                 format!("{key}[{i}]"),
-                format!("colours must not be negative, got {x}"),
+                format!("colours must not be negative, got {}", shown(x)),
             ));
         }
     }
@@ -1094,7 +1120,7 @@ fn unit_colour(key: &str, c: raw::Vec3) -> Result<Rgb> {
         if x > 1.0 {
             return Err(ManifestError::invalid(
                 format!("{key}[{i}]"),
-                format!("must lie in [0, 1], got {x}"),
+                format!("must lie in [0, 1], got {}", shown(x)),
             ));
         }
     }

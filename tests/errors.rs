@@ -87,7 +87,12 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
         (
             "out-of-range.json",
             m(r#""spheres": [{"center": [0, 0, 1e300], "radius": 1}]"#),
-            vec!["spheres[0].center[2]", "out of range"],
+            vec!["spheres[0].center[2]", "1e300 is out of range"],
+        ),
+        (
+            "tiny-radius.json",
+            m(r#""spheres": [{"center": [0, 0, 3], "radius": -1e-30}]"#),
+            vec!["spheres[0].radius", "got -1e-30"],
         ),
         (
             "zero-width.json",
