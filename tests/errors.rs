@@ -300,6 +300,7 @@ fn bad_mesh_files_are_refused_with_the_file_and_place() {
     let cases: Vec<(&str, &[u8], Vec<&str>)> = vec![
         ("vertex.obj", b"v 0 0 0\nv 1 oops 0\nv 0 1 0\nf 1 2 3\n", vec!["vertex.obj: line 2", "three numbers"]),
         ("face.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", vec!["face.obj: line 4", "does not exist"]),
+        ("corner.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf //1 2 3\n", vec!["corner.obj: line 5", "does not exist"]),
         ("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", vec!["zero.obj: line 4"]),
         ("nan.obj", b"v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", vec!["nan.obj", "vertex 2 is not finite"]),
         // A relative index far before the first texture coordinate: tobj multiplies it

@@ -144,7 +144,11 @@ enum CornerFault {
 /// of each kind read so far (negative indices count back from them).
 fn corner_fault(corner: &str, counts: [usize; 3]) -> Option<CornerFault> {
     for (kind, part) in corner.split('/').enumerate() {
+        // tobj takes a corner without a vertex index (`//1`) as one out of range.
         if part.is_empty() {
+            if kind == 0 {
+                return Some(CornerFault::OutOfRange(0));
+            }
             continue;
         }
         if kind > 2 {
@@ -226,6 +230,11 @@ mod tests {
                 "not a number",
             ),
             ("v 0 0 0\nvn 1 0\n", 2, "three numbers"),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1 2 3\nf //1 2 3\n",
+                6,
+                "does not exist",
+            ),
         ];
         for (text, line, words) in cases {
             let error = load(text).unwrap_err();
