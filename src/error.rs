@@ -25,6 +25,23 @@ pub enum ManifestError {
     Invalid { key: String, message: String },
 }
 
+/// A number as an error message shows it: as Rust prints it, but in scientific notation
+/// where that would run to many digits or zeros (`1e300`, not three hundred digits;
+/// `3e15`; `1e-9`).
+pub(crate) fn shown<T: Into<f64> + Copy + fmt::Display + fmt::LowerExp>(x: T) -> String {
+    let magnitude = x.into().abs();
+    if magnitude == 0.0 || !magnitude.is_finite() || (1e-4..1e6).contains(&magnitude) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
+/// [`shown`] for each coordinate: `[x, y, z]`.
+pub(crate) fn shown_point<T: Into<f64> + Copy + fmt::Display + fmt::LowerExp>(p: [T; 3]) -> String {
+    format!("[{}, {}, {}]", shown(p[0]), shown(p[1]), shown(p[2]))
+}
+
 fn with_key(key: &Option<String>, message: &str) -> String {
     match key {
         Some(key) if !key.is_empty() && key != "." => format!("{key}: {message}"),

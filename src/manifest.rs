@@ -39,7 +39,7 @@ use glam::{DMat4, DVec3};
 use serde::Deserialize;
 
 use crate::camera::{self, CameraFrame, ThinLens};
-use crate::error::ManifestError;
+use crate::error::{ManifestError, shown};
 use crate::transform;
 
 /// Largest magnitude accepted for a coordinate, length or colour. Geometry is intersected
@@ -474,16 +474,6 @@ mod raw {
 }
 
 type Result<T> = std::result::Result<T, ManifestError>;
-
-/// A number as an error message shows it: as Rust prints it, but in scientific notation
-/// where that would run to many digits (`1e300`, not three hundred digits; `1e-9`).
-fn shown(x: f64) -> String {
-    if x == 0.0 || !x.is_finite() || (1e-4..1e16).contains(&x.abs()) {
-        format!("{x}")
-    } else {
-        format!("{x:e}")
-    }
-}
 
 fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
     let folder = path.parent().unwrap_or(Path::new(""));

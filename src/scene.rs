@@ -182,7 +182,9 @@ impl SceneGeometry {
                 return Err(MeshError::Range {
                     path: file.to_path_buf(),
                     message: format!(
-                        "vertex {p:?} lands at {q} after the transforms, out of range (magnitudes up to {MAX_MAGNITUDE:e})"
+                        "vertex {} lands at {} after the transforms, out of range (magnitudes up to {MAX_MAGNITUDE:e})",
+                        crate::error::shown_point(*p),
+                        crate::error::shown_point(q.to_array())
                     ),
                 });
             };
