@@ -293,7 +293,9 @@ pub fn decode(bytes: &[u8]) -> Result<Decoded, String> {
             if !(1..=65535).contains(&maxval) {
                 return Err(format!("maxval {maxval} is outside 1..=65535"));
             }
-            let mut pixels = Vec::with_capacity(n);
+            // Sized by what the file can hold, never by its header alone: a header may
+            // claim more pixels than memory holds (a P3 value takes two bytes or more).
+            let mut pixels = Vec::with_capacity(n.min(bytes.len() / 6 + 1));
             if magic == "P3" {
                 for _ in 0..n {
                     let mut p = [0.0; 3];
@@ -1048,6 +1050,10 @@ mod tests {
             (b"P6\n2 2\n255\n\0\0\0", "bytes of pixel data"),
             (b"PF\n1 1\nabc\n", "scale"),
             (b"P3\nx 1\n255\n", "bad width"),
+            // Headers claiming 10^10 pixels: refused for their data, not by exhausting memory.
+            (b"P6\n100000 100000\n255\n\0\0\0", "bytes of pixel data"),
+            (b"P3\n100000 100000\n255\n1 2 3\n", "ends early"),
+            (b"PF\n100000 100000\n-1.0\n\0\0\0\0", "bytes of pixel data"),
         ] {
             let error = decode(bytes).unwrap_err();
             assert!(error.contains(fragment), "{error}");
