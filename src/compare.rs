@@ -124,9 +124,12 @@ pub fn compare_images(
             a.width, a.height, b.width, b.height
         ));
     }
-    // Same kind of file: native units. Mixed: PPM scaled to [0, 1].
+    // Same kind of file (and for PPMs the same maxval): native units. Otherwise PPMs
+    // scaled to [0, 1], so that an 8-bit and a 16-bit image compare as the colours they
+    // denote.
     let scale = |d: &Decoded| match (a.maxval, b.maxval) {
-        (Some(_), Some(_)) | (None, None) => 1.0,
+        (Some(ma), Some(mb)) if ma == mb => 1.0,
+        (None, None) => 1.0,
         _ => d.maxval.map_or(1.0, |m| 1.0 / f64::from(m)),
     };
     let (scale_a, scale_b) = (scale(a), scale(b));
@@ -287,6 +290,19 @@ mod tests {
             (same.differing, same.max_abs, same.psnr),
             (0, 0.0, f64::INFINITY)
         );
+    }
+
+    #[test]
+    fn ppms_of_other_maxvals_compare_as_fractions_of_their_maxval() {
+        let a = image(Some(255), vec![[255.0, 0.0, 51.0]]);
+        let b = image(Some(65535), vec![[65535.0, 0.0, 13107.0]]);
+        let c = compare_images(&a, &b, None).unwrap();
+        assert_eq!((c.differing, c.max_abs, c.psnr), (0, 0.0, f64::INFINITY));
+        let d = image(Some(65535), vec![[0.0, 0.0, 13107.0]]);
+        let c = compare_images(&a, &d, None).unwrap();
+        assert_eq!((c.differing, c.max_abs), (1, 1.0));
+        // Peak 1 in these units.
+        assert!((c.psnr - 20.0 * (1.0 / c.rmse).log10()).abs() < 1e-12);
     }
 
     #[test]
