@@ -45,6 +45,17 @@ pub struct BenchOptions {
     pub eight_lane_packets: bool,
 }
 
+impl BenchOptions {
+    /// Whether the scene or job `name` is to be run (`only` is empty, or one of its
+    /// entries is part of `name`).
+    pub fn wants(&self, name: &str) -> bool {
+        self.only.is_empty() || self.only.iter().any(|o| name.contains(o.as_str()))
+    }
+}
+
+/// The scanned models the bench traces when `models` holds them, by file stem (`.obj`).
+pub const SCANNED_MODELS: [&str; 3] = ["stanford-bunny", "nefertiti", "ogre"];
+
 /// Throughput at one thread count, in millions of rays per second: one ray per query
 /// (`closest_hit`, `any_hit_hinted`: Embree's `rtcIntersect1`, `rtcOccluded1`), and the
 /// batch queries on runs of 64 neighbouring camera rays (`closest_hits`, `any_hits`: our
@@ -134,9 +145,7 @@ struct TraceScene {
 
 /// Runs the benchmarks. `temp` is a scratch folder for files written on the way.
 pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
-    let wanted = |name: &str| {
-        options.only.is_empty() || options.only.iter().any(|o| name.contains(o.as_str()))
-    };
+    let wanted = |name: &str| options.wants(name);
     let (width, height) = if options.quick {
         (480, 270)
     } else {
@@ -189,7 +198,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         }
     }
     if let Some(models) = &options.models {
-        for model in ["stanford-bunny", "nefertiti", "ogre"] {
+        for model in SCANNED_MODELS {
             let file = models.join(format!("{model}.obj"));
             if wanted(model) && file.exists() {
                 scenes.push(Box::new(move || mesh_scene(model, &file, (width, height))));

@@ -519,6 +519,8 @@ fn exit_statuses_are_0_1_and_2() {
         vec!["paint", "good.json"],
         vec!["render", "good.json", "--stats", "empty"],
         vec!["render", "good.json", "--backend", "ospray"],
+        vec!["bench", "--quick", "--models", "absent"],
+        vec!["bench", "--quick", "--only", "no-such-scene"],
         #[cfg(not(feature = "embree"))]
         vec!["render", "good.json", "--backend", "embree"],
         #[cfg(not(feature = "embree"))]
@@ -528,4 +530,15 @@ fn exit_statuses_are_0_1_and_2() {
         assert_eq!(run.status, 2, "{args:?}: {}", run.stderr);
         assert!(!run.stderr.is_empty());
     }
+    // A scanned model missing from `--models` is named; with nothing else to measure,
+    // the bench is refused rather than printing empty tables.
+    let run = dir.raybatch(&["bench", "--quick", "--models", "empty", "--only", "bunny"]);
+    assert_eq!(run.status, 2, "{}", run.stderr);
+    assert!(
+        run.stderr.contains("stanford-bunny.obj not found")
+            && run.stderr.contains("nothing to measure")
+            && !run.stderr.contains("ogre"),
+        "{}",
+        run.stderr
+    );
 }

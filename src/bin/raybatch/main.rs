@@ -244,8 +244,6 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
     if args.threads.contains(&0) {
         bail!("--threads takes counts of 1 or more");
     }
-    let temp = std::env::temp_dir().join(format!("raybatch-bench-{}", std::process::id()));
-    std::fs::create_dir_all(&temp).with_context(|| format!("cannot create {}", temp.display()))?;
     let options = raybatch::bench::BenchOptions {
         quick: args.quick,
         models: args.models.clone(),
@@ -254,9 +252,33 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
         embree: args.embree,
         eight_lane_packets: args.eight_lane_packets,
     };
+    if let Some(dir) = &args.models {
+        if !dir.is_dir() {
+            bail!("--models {}: not a folder", dir.display());
+        }
+        for model in raybatch::bench::SCANNED_MODELS {
+            let file = dir.join(format!("{model}.obj"));
+            // The close-up is the ogre's too.
+            let wanted = options.wants(model) || model == "ogre" && options.wants("ogre close up");
+            if wanted && !file.is_file() {
+                eprintln!(
+                    "raybatch: warning: {} not found; its rows are left out",
+                    file.display()
+                );
+            }
+        }
+    }
+    let temp = std::env::temp_dir().join(format!("raybatch-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&temp).with_context(|| format!("cannot create {}", temp.display()))?;
     let report = raybatch::bench::run(&options, &temp);
     let _ = std::fs::remove_dir_all(&temp);
     let report = report.map_err(|e| anyhow::anyhow!(e))?;
+    if report.scenes.is_empty() && report.jobs.is_empty() {
+        bail!(
+            "nothing to measure: --only {} names no scene or job the bench can run here",
+            args.only.join(",")
+        );
+    }
     if args.json {
         println!("{}", report.to_json());
     } else {
