@@ -104,12 +104,19 @@ pub fn load(path: &Path) -> Result<MeshFile, MeshError> {
         path: path.to_path_buf(),
         source,
     })?;
-    let mesh = match format {
+    let mut mesh = match format {
         MeshFormat::Obj => crate::obj::parse(&bytes, path)?,
         MeshFormat::Gltf | MeshFormat::Glb => crate::gltf_mesh::parse(&bytes, path)?,
     };
     for geometry in &mesh.geometries {
         check_geometry(geometry, path)?;
+    }
+    // Valid, but most likely not what was meant (an empty export, a glTF scene of no nodes).
+    if mesh.triangle_count() == 0 {
+        mesh.warnings.push(format!(
+            "{}: no triangles; the mesh adds nothing",
+            path.display()
+        ));
     }
     Ok(mesh)
 }

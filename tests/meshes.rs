@@ -233,6 +233,43 @@ fn points_and_lines_are_skipped_with_a_warning() {
     );
 }
 
+#[test]
+fn a_mesh_file_without_triangles_renders_with_a_warning() {
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    // A glTF whose only primitive is points, and whose scene has no nodes.
+    let points = buffer.document(json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": positions}, "mode": 0}]}],
+        "nodes": [{"mesh": 0}], "scenes": [{"nodes": []}]
+    }));
+    let dir = Dir::new();
+    dir.write("points.gltf", points.to_string());
+    dir.write("empty.obj", "# exported from an empty scene\nv 0 0 1\n");
+    dir.write("one.obj", "v 0 0 1\nv 1 0 1\nv 0 1 1\nf 1 2 3\n");
+    for (file, warned) in [
+        ("points.gltf", true),
+        ("empty.obj", true),
+        ("one.obj", false),
+    ] {
+        dir.write(
+            "m.json",
+            format!(
+                r#"{{"image": {{"width": 4, "height": 4}}, "meshes": [{{"file": "{file}"}}]}}"#
+            ),
+        );
+        let run = dir.raybatch(&["render", "m.json"]);
+        assert_eq!(run.status, 0, "{}", run.stderr);
+        let warnings = run.warning_lines();
+        assert_eq!(
+            warnings
+                .iter()
+                .any(|w| w.contains(file) && w.contains("no triangles")),
+            warned,
+            "{file}: {warnings:?}"
+        );
+    }
+}
+
 /// glTF 2.0 requires `min` and `max` on `POSITION` accessors, but some exporters leave
 /// them out; the gltf crate's validator refuses such a file. It is read (nothing needs the
 /// bounds) with a warning naming the accessor, and renders the triangle's depth.
