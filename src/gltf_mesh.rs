@@ -141,6 +141,9 @@ pub fn parse(bytes: &[u8], path: &Path) -> Result<MeshFile, MeshError> {
 /// ([`accept_unbounded_positions`]).
 fn open(bytes: &[u8]) -> Result<Opened<'_>, (Option<String>, String)> {
     let text = |e: gltf::Error| (None, e.to_string());
+    if bytes.iter().all(u8::is_ascii_whitespace) {
+        return Err((None, "the file is empty".to_string()));
+    }
     let (json, blob) = if bytes.starts_with(b"glTF") {
         // `Glb::from_slice` subtracts the header's size from its length unchecked.
         const HEADER: u32 = 12;

@@ -312,6 +312,7 @@ fn bad_mesh_files_are_refused_with_the_file_and_place() {
         ),
         ("binary.obj", b"v 0 0 0\n\xff\xfe\n", vec!["binary.obj: line 2", "UTF-8"]),
         ("text.gltf", b"this is not json", vec!["text.gltf"]),
+        ("empty.glb", b"", vec!["empty.glb", "the file is empty"]),
         ("truncated.glb", b"glTF\x02\x00\x00\x00", vec!["truncated.glb"]),
         // A header whose length is shorter than the header: the gltf crate subtracts
         // without checking (a panic in debug builds).
