@@ -51,7 +51,17 @@ impl BenchOptions {
     pub fn wants(&self, name: &str) -> bool {
         self.only.is_empty() || self.only.iter().any(|o| name.contains(o.as_str()))
     }
+
+    /// Whether a wanted scene reads the scanned model `model` (one of [`SCANNED_MODELS`]):
+    /// its own view, or for ogre also the close-up.
+    pub fn reads_model(&self, model: &str) -> bool {
+        self.wants(model) || model == CLOSE_UP_MODEL && self.wants(CLOSE_UP)
+    }
 }
+
+/// The close-up scene, and the scanned model it views.
+const CLOSE_UP: &str = "ogre close up";
+const CLOSE_UP_MODEL: &str = "ogre";
 
 /// The scanned models the bench traces when `models` holds them, by file stem (`.obj`).
 pub const SCANNED_MODELS: [&str; 3] = ["stanford-bunny", "nefertiti", "ogre"];
@@ -207,11 +217,10 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         // The ogre from the same place through a field of view of 6° instead of 40°: a
         // close-up, where nearly every ray hits and the visible triangles are each many
         // pixels wide, so all the rays of a packet meet the same few.
-        let close_up = "ogre close up";
-        let file = models.join("ogre.obj");
-        if wanted(close_up) && file.exists() {
+        let file = models.join(format!("{CLOSE_UP_MODEL}.obj"));
+        if wanted(CLOSE_UP) && file.exists() {
             scenes.push(Box::new(move || {
-                let scene = mesh_scene(close_up, &file, (width, height))?;
+                let scene = mesh_scene(CLOSE_UP, &file, (width, height))?;
                 Ok(TraceScene {
                     vfov: CLOSE_UP_VFOV,
                     ..scene

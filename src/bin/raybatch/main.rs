@@ -258,9 +258,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
         }
         for model in raybatch::bench::SCANNED_MODELS {
             let file = dir.join(format!("{model}.obj"));
-            // The close-up is the ogre's too.
-            let wanted = options.wants(model) || model == "ogre" && options.wants("ogre close up");
-            if wanted && !file.is_file() {
+            if options.reads_model(model) && !file.is_file() {
                 eprintln!(
                     "raybatch: warning: {} not found; its rows are left out",
                     file.display()
