@@ -3,7 +3,7 @@
 //! camera rays (`Scene::closest_hits`) paced, always as packets, always side by side (single
 //! rays traced in turns), and ray by ray, on an
 //! 82k-triangle icosphere and a 10,000-sphere field at a low and a high resolution, and
-//! at the high one through a thin lens.
+//! at the high one through a thin lens; and the whole icosphere in a 16 × 16 view.
 //!
 //!     cargo bench --bench trace
 //!     cargo bench --bench trace -- packets
@@ -63,12 +63,12 @@ fn trace(c: &mut Criterion) {
     group.finish();
 }
 
-/// Camera rays of a `size` × `size` view from `eye` toward the origin (90° field), in
-/// 8 × 8 tiles of neighbouring pixels, as the renderer groups them; with `lens`, through
+/// Camera rays of a `size` × `size` view from `eye` toward the origin (a field of `vfov`
+/// degrees), in 8 × 8 tiles of neighbouring pixels, as the renderer groups them; with `lens`, through
 /// a thin lens of that radius focused on the origin, lens points as a render's first
 /// sample takes them.
-fn tiled_rays(eye: DVec3, size: u32, lens: Option<f64>) -> Vec<Ray> {
-    let frame = look_at_frame(eye, DVec3::ZERO, DVec3::Y, 90.0).unwrap();
+fn tiled_rays(eye: DVec3, size: u32, vfov: f64, lens: Option<f64>) -> Vec<Ray> {
+    let frame = look_at_frame(eye, DVec3::ZERO, DVec3::Y, vfov).unwrap();
     let lens = lens.map(|radius| ThinLens {
         radius,
         focus_distance: eye.length(),
@@ -126,12 +126,17 @@ fn packets(c: &mut Criterion) {
     let eye = DVec3::new(1.5, 0.9, 1.5);
     for size in [128, 1024] {
         let name = format!("packets/icosphere-82k-{size}");
-        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, None));
+        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, 90.0, None));
     }
     // A lens three times as wide as a tile's footprint at the focus (DEVELOPERS.md, "Lens
     // packets are bounded from where their rays meet").
-    let rays = tiled_rays(eye, 1024, Some(0.05));
+    let rays = tiled_rays(eye, 1024, 90.0, Some(0.05));
     batch_against_single(c, "packets/icosphere-82k-1024-lens", &mut scene, &rays);
+    // The whole mesh in a 16 × 16 view (a quarter of it to a packet, whose rays are some
+    // forty triangles apart): packets that give up (DEVELOPERS.md, "A packet that
+    // reaches thousands of leaves gives up").
+    let rays = tiled_rays(DVec3::splat(1.3), 16, 50.0, None);
+    batch_against_single(c, "packets/icosphere-82k-16-whole", &mut scene, &rays);
 
     let mut scene = Scene::build(&SceneGeometry {
         spheres: raybatch::bench::scattered_spheres(10_000),
@@ -140,11 +145,11 @@ fn packets(c: &mut Criterion) {
     let eye = DVec3::new(8.0, 12.0, 30.0) * 0.6;
     for size in [64, 1024] {
         let name = format!("packets/spheres-10k-{size}");
-        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, None));
+        batch_against_single(c, &name, &mut scene, &tiled_rays(eye, size, 90.0, None));
     }
     // Through a lens, sphere packets are bounded from where their rays meet, as triangle
     // packets are.
-    let rays = tiled_rays(eye, 1024, Some(0.3));
+    let rays = tiled_rays(eye, 1024, 90.0, Some(0.3));
     batch_against_single(c, "packets/spheres-10k-1024-lens", &mut scene, &rays);
 }
 

@@ -143,11 +143,23 @@ pub struct Visits {
     pub entries: u32,
     /// Leaves some ray entered.
     pub entered: u32,
+    /// Whether the packet gave up ([`Visits::hopeless`]) before its rays' search ended,
+    /// reporting no closest hits: its rays are to be traced another way.
+    pub gave_up: bool,
 }
 
 impl Visits {
     /// Fewest leaves before [`Visits::wasteful`] judges a packet.
     pub const JUDGED_FROM: u32 = 16;
+    /// Leaves from which a packet still [`wasteful`](Visits::wasteful) gives up: sixteen
+    /// per ray of a full packet. Of the packets of `raybatch bench`'s views, one in 69 at
+    /// 320x180 reached more (up to 2047), the others at most 1023, so hardly any that
+    /// would have finished is cut short. A packet whose rays are spread much wider than
+    /// the leaves (a small image of a large mesh) reaches thousands: each of those cost a
+    /// 16x16 view of the million-triangle torus 3 to 8 ms, against 0.1 ms for the whole
+    /// image traced one by one (DEVELOPERS.md, "A packet that reaches thousands of
+    /// leaves gives up").
+    pub const GIVE_UP_FROM: u32 = 16 * PACKET as u32;
     /// Leaves reached per entering ray above which a packet is judged wasteful: where
     /// tracing one by one becomes about as fast, through the triangles (an 82k-triangle
     /// icosphere at 128², the full-HD torus of `raybatch bench`) as through the spheres
@@ -173,6 +185,13 @@ impl Visits {
     /// one by one.
     pub fn scattered(self) -> bool {
         self.entered >= Self::JUDGED_FROM && 16 * self.entries <= 17 * self.entered
+    }
+
+    /// Whether a packet, so far, has reached at least [`Visits::GIVE_UP_FROM`] leaves and
+    /// is [`wasteful`](Visits::wasteful): then it stops, and its rays go one by one. What
+    /// it spent is bounded by that count; what it saves is unbounded.
+    pub fn hopeless(self) -> bool {
+        self.leaves >= Self::GIVE_UP_FROM && self.wasteful()
     }
 }
 
@@ -344,7 +363,8 @@ struct Search {
 /// called for each ray `i` with a triangle hit, the nearest (as [`crate::simd::closest`]
 /// finds it). Returns what the traversal visited, or `None`, calling nothing, when the
 /// rays' directions differ in sign on some axis, a ray has a NaN, or an origin or
-/// direction is infinite.
+/// direction is infinite. A packet that [gave up](Visits::hopeless) has called nothing
+/// either.
 ///
 /// # Safety
 /// The CPU must support AVX2, and AVX-512F too for [`LeafLanes::Sixteen`]; and
@@ -368,7 +388,8 @@ pub unsafe fn closest(
 
 /// Whether each of up to [`PACKET`] rays hits any triangle (`out[i]` for ray `i`), traced
 /// together; rays leave the packet as soon as they hit. Returns what the traversal
-/// visited, or `None`, touching nothing, as for [`closest`].
+/// visited, or `None`, touching nothing, as for [`closest`]; nor does a packet that gave
+/// up touch `out`.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -932,6 +953,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 }
             }
             visits.entered += u32::from(visits.entries > entries_before);
+            if visits.hopeless() {
+                // Nothing is reported: the caller traces the rays another way.
+                visits.gave_up = true;
+                return Some(visits);
+            }
             if improved {
                 // SAFETY: AVX2 is enabled where `trace` inlines.
                 packet_tmax = unsafe { widest_horizon(&search.t_box) };
@@ -1495,16 +1521,19 @@ mod tests {
             leaves: 40,
             entries: 40 / Visits::MOST_LEAVES_PER_ENTRY - 1,
             entered: 20,
+            gave_up: false,
         };
         let useful = Visits {
             leaves: 40,
             entries: 40 / Visits::MOST_LEAVES_PER_ENTRY,
             entered: 20,
+            gave_up: false,
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
             entered: 0,
+            gave_up: false,
         };
         assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
         // Each test runs on its own thread: the pacing starts fresh.
@@ -1543,6 +1572,7 @@ mod tests {
             leaves: 200,
             entries,
             entered: 32,
+            gave_up: false,
         };
         let (scattered, shared) = (visits(34), visits(35));
         assert!(scattered.wasteful() && shared.wasteful());
@@ -1553,6 +1583,7 @@ mod tests {
                 leaves: 200,
                 entries: entered,
                 entered,
+                gave_up: false,
             };
             assert!(few.wasteful() && !few.scattered());
         }
@@ -1561,6 +1592,7 @@ mod tests {
                 leaves: 200,
                 entries: Visits::JUDGED_FROM,
                 entered: Visits::JUDGED_FROM,
+                gave_up: false,
             }
             .scattered()
         );

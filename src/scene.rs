@@ -408,6 +408,11 @@ impl Scene {
         &self.sphere_bvh
     }
 
+    /// The spheres in the order of their tree's leaves (for inspection and tests).
+    pub fn spheres_in_tree_order(&self) -> &[Sphere] {
+        &self.spheres
+    }
+
     /// The triangle tree (for inspection and tests).
     pub fn triangle_bvh(&self) -> &Bvh<f32> {
         &self.triangles.bvh
@@ -462,7 +467,8 @@ impl Scene {
     /// Traces a group of rays as a packet through `tree` when `enabled` (the CPU and tree
     /// allow it) and the pacing does not hold packets back: `trace` runs the packet and
     /// returns what it visited, or `None` when the rays cannot be one. Says how the caller
-    /// is to trace the group if it was not traced.
+    /// is to trace the group if it was not traced, or gave up
+    /// ([`crate::packet::Visits::hopeless`]).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     fn traced_as_packet(
@@ -484,7 +490,12 @@ impl Scene {
             return GroupTrace::OneByOne;
         };
         crate::packet::record(tree, visits);
-        GroupTrace::Packet
+        match visits.gave_up {
+            false => GroupTrace::Packet,
+            // As the spell the packet has just begun will trace the next groups.
+            true if visits.scattered() => GroupTrace::SideBySide,
+            true => GroupTrace::OneByOne,
+        }
     }
 
     /// The closest hit with `ray.tmin < t < ray.tmax` over all primitives.
@@ -1147,7 +1158,8 @@ pub enum Grouping {
     /// its rays scattered, each in leaves of its own.
     #[default]
     Paced,
-    /// Every group that can be a packet is one, even after wasteful packets.
+    /// Every group that can be a packet is one, even after wasteful packets (but for a
+    /// packet that gives up, [`crate::packet::Visits::hopeless`]).
     Packets,
     /// No packets: the rays through the triangles side by side, through the spheres one
     /// by one.

@@ -458,7 +458,8 @@ impl Ranges {
 /// `rays[k].tmin < t < tmax[k]`: `found(k, t, position)` is called for each ray with a
 /// hit, `position` indexing `spheres` (the tree's leaf order). Returns what the traversal
 /// visited, or `None`, calling nothing, when the rays' directions differ in sign on some
-/// axis, a ray's origin or direction is not finite, or its `tmin` is NaN.
+/// axis, a ray's origin or direction is not finite, or its `tmin` is NaN. A packet that
+/// [gave up](Visits::hopeless) has called nothing either.
 ///
 /// # Safety
 /// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
@@ -477,7 +478,8 @@ pub unsafe fn closest(
 /// Whether each of up to [`PACKET`] rays hits a sphere with `rays[k].tmin < t < tmax[k]`,
 /// traced together: `found(k, t, position)` is called for each ray that does, with some
 /// hit (not necessarily the nearest); rays leave the packet at their first hit. Returns
-/// what the traversal visited, or `None`, calling nothing, as for [`closest`].
+/// what the traversal visited, or `None`, calling nothing, as for [`closest`]. A packet
+/// that gave up may have reported some rays: their hits hold, and the others are unknown.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -650,6 +652,11 @@ unsafe fn trace<const ANY: bool>(
                 unsafe { _mm256_store_pd(horizon.0[g].as_mut_ptr(), best) };
             }
             visits.entered += u32::from(visits.entries > entries_before);
+            if visits.hopeless() {
+                // No closest hit is reported (any hits found so far have been: they hold).
+                visits.gave_up = true;
+                return Some(visits);
+            }
             if improved {
                 // SAFETY: AVX2 is enabled in this function.
                 let mut widest = unsafe { horizon.load(0) };

@@ -1263,6 +1263,116 @@ fn sphere_packets_wider_than_the_spheres_send_the_next_groups_one_by_one() {
 }
 
 #[test]
+#[cfg(target_arch = "x86_64")]
+fn packets_far_wider_than_the_leaves_give_up_and_their_rays_go_one_by_one() {
+    // A packet's work grows with the leaves its bounds reach, which over a small view of a
+    // detailed mesh or a dense field of spheres is thousands. A packet still wasteful at
+    // `Visits::GIVE_UP_FROM` leaves stops there and reports no hit, and the batch queries
+    // trace its rays another way: the hits are those of single rays. The packets of a
+    // large view of the same scene never give up.
+    use raybatch::packet::LeafLanes;
+    if !has_avx2() {
+        return;
+    }
+    let mut lanes = vec![LeafLanes::Eight];
+    if is_x86_feature_detected!("avx512f") {
+        lanes.push(LeafLanes::Sixteen);
+    }
+    let mut mesh = Scene::build(&placed(&procedural::icosphere(6), DMat4::IDENTITY));
+    let mut spheres = Scene::build(&SceneGeometry {
+        spheres: raybatch::bench::scattered_spheres(100_000),
+        ..SceneGeometry::default()
+    });
+    let (mesh_eye, spheres_eye) = (DVec3::new(2.0, 1.2, 2.0), DVec3::new(8.0, 12.0, 30.0));
+    // Narrow views filled by the scene, `size` pixels square.
+    let view = |eye, size| tiled_lens_rays(eye, DVec3::ZERO, size, 0.3, 0.0, &mut Numbers(0));
+    // What the packets of some 200 groups of each view visited, and whether each reported a
+    // hit: the mesh's at each width, then the spheres'.
+    let packets = |size: u32| {
+        let (mut through_mesh, mut through_spheres) = (Vec::new(), Vec::new());
+        let rays = view(mesh_eye, size);
+        let step = (rays.len() / 64 / 200).max(1);
+        for group in rays.chunks(64).step_by(step) {
+            let prepared: Vec<_> = group
+                .iter()
+                .map(|r| raybatch::scene::TriangleRay {
+                    origin: r.origin.as_vec3().to_array(),
+                    direction: r.direction.as_vec3().to_array(),
+                    tmin: 0.0,
+                    tmax: f32::INFINITY,
+                })
+                .collect();
+            for &lanes in &lanes {
+                let mut reported = false;
+                // SAFETY: AVX2 (and AVX-512F for sixteen lanes) is present, and the
+                // default tree fits the packet's stack.
+                let visits = unsafe {
+                    raybatch::packet::closest(
+                        lanes,
+                        mesh.triangle_bvh(),
+                        mesh.triangle_tree().blocks(),
+                        &prepared,
+                        |_, _, _| reported = true,
+                    )
+                };
+                // Groups whose rays differ in direction signs are not packets.
+                through_mesh.extend(visits.map(|v| (v, reported)));
+            }
+        }
+        let rays = view(spheres_eye, size);
+        for group in rays.chunks(64).step_by(step) {
+            let mut reported = false;
+            // SAFETY: AVX2 is present, and the default tree fits the packet's stack.
+            let visits = unsafe {
+                raybatch::sphere_packet::closest(
+                    spheres.sphere_bvh(),
+                    spheres.spheres_in_tree_order(),
+                    group,
+                    &vec![f64::INFINITY; group.len()],
+                    |_, _, _| reported = true,
+                )
+            };
+            through_spheres.extend(visits.map(|v| (v, reported)));
+        }
+        (through_mesh, through_spheres)
+    };
+    let (small_mesh, small_spheres) = packets(16);
+    assert!(small_mesh.len() >= 4 && !small_spheres.is_empty());
+    for (visits, reported) in small_mesh.iter().chain(&small_spheres) {
+        assert!(
+            visits.gave_up && visits.hopeless() && !reported,
+            "{visits:?}"
+        );
+    }
+    let (large_mesh, large_spheres) = packets(1024);
+    assert!(large_mesh.len() > 100 && large_spheres.len() > 100);
+    for (visits, _) in large_mesh.iter().chain(&large_spheres) {
+        assert!(!visits.gave_up, "{visits:?}");
+    }
+    for packets in [&large_mesh, &large_spheres] {
+        let reporting = packets.iter().filter(|(_, reported)| *reported).count();
+        assert!(
+            reporting > packets.len() / 2,
+            "{reporting} of {}",
+            packets.len()
+        );
+    }
+    // The batch queries, made to try every group as a packet, answer as single rays do.
+    for (scene, eye) in [(&mut mesh, mesh_eye), (&mut spheres, spheres_eye)] {
+        scene.set_grouping(Grouping::Packets);
+        let rays = view(eye, 16);
+        let (mut closest, mut any) = (vec![None; rays.len()], vec![false; rays.len()]);
+        scene.closest_hits(&rays, &mut closest);
+        scene.any_hits(&rays, &mut any);
+        for (k, ray) in rays.iter().enumerate() {
+            assert_eq!(closest[k], scene.closest_hit(ray), "ray {k}");
+            assert_eq!(any[k], scene.any_hit(ray), "ray {k}");
+        }
+        assert!(any.iter().filter(|&&hit| hit).count() > rays.len() / 2);
+    }
+}
+
+#[test]
 fn batch_queries_agree_with_single_rays_in_scenes_of_every_primitive_kind() {
     // Spheres in front of, behind and cutting through a mesh, over a plane: a batch must
     // keep the analytic hit where it is nearer and the triangle where that is nearer.
