@@ -1170,6 +1170,19 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
     }
 }
 
+/// Camera rays (from `t = 0` on) rounded to float32 for the packet kernels.
+#[cfg(target_arch = "x86_64")]
+fn rounded_for_packets(rays: &[Ray]) -> Vec<raybatch::scene::TriangleRay> {
+    rays.iter()
+        .map(|r| raybatch::scene::TriangleRay {
+            origin: r.origin.as_vec3().to_array(),
+            direction: r.direction.as_vec3().to_array(),
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+        })
+        .collect()
+}
+
 #[test]
 #[cfg(target_arch = "x86_64")]
 fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
@@ -1188,15 +1201,7 @@ fn packets_over_a_mesh_finer_than_the_pixels_are_judged_wasteful() {
         let step = (rays.len() / 64 / 200).max(1);
         let (mut reaching, mut wasteful) = (0, 0);
         for group in rays.chunks(64).step_by(step) {
-            let prepared: Vec<_> = group
-                .iter()
-                .map(|r| raybatch::scene::TriangleRay {
-                    origin: r.origin.as_vec3().to_array(),
-                    direction: r.direction.as_vec3().to_array(),
-                    tmin: 0.0,
-                    tmax: f32::INFINITY,
-                })
-                .collect();
+            let prepared = rounded_for_packets(group);
             // SAFETY: AVX2 is present, and the default tree fits the packet's stack.
             let visits = unsafe {
                 raybatch::packet::closest(
@@ -1293,15 +1298,7 @@ fn packets_far_wider_than_the_leaves_give_up_and_their_rays_go_one_by_one() {
         let rays = view(mesh_eye, size);
         let step = (rays.len() / 64 / 200).max(1);
         for group in rays.chunks(64).step_by(step) {
-            let prepared: Vec<_> = group
-                .iter()
-                .map(|r| raybatch::scene::TriangleRay {
-                    origin: r.origin.as_vec3().to_array(),
-                    direction: r.direction.as_vec3().to_array(),
-                    tmin: 0.0,
-                    tmax: f32::INFINITY,
-                })
-                .collect();
+            let prepared = rounded_for_packets(group);
             for &lanes in &lanes {
                 let mut reported = false;
                 // SAFETY: AVX2 (and AVX-512F for sixteen lanes) is present, and the
