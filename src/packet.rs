@@ -1536,6 +1536,15 @@ mod tests {
             gave_up: false,
         };
         assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
+        // A packet gives up only once it has reached that many leaves, and is wasteful.
+        let reached = |leaves, entries| Visits {
+            leaves,
+            entries,
+            ..Visits::default()
+        };
+        let most = Visits::GIVE_UP_FROM;
+        assert!(reached(most, most - 1).hopeless());
+        assert!(!reached(most - 1, 0).hopeless() && !reached(most, most).hopeless());
         // Each test runs on its own thread: the pacing starts fresh.
         let spell = |tree| {
             let single = std::iter::repeat_with(|| worth_trying(tree))
