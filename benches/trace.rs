@@ -89,8 +89,8 @@ fn tiled_rays(eye: DVec3, size: u32, vfov: f64, lens: Option<f64>) -> Vec<Ray> {
         .collect()
 }
 
-/// `closest_hits` in groups of 64 (paced, always as packets, always side by side) against
-/// `closest_hit` ray by ray.
+/// `closest_hits` in groups of 64 (paced, always as packets but for packets that give up,
+/// always side by side) against `closest_hit` ray by ray.
 fn batch_against_single(c: &mut Criterion, name: &str, scene: &mut Scene, rays: &[Ray]) {
     let mut out = vec![None; rays.len()];
     let mut group = c.benchmark_group(name);
