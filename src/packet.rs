@@ -143,9 +143,6 @@ pub struct Visits {
     pub entries: u32,
     /// Leaves some ray entered.
     pub entered: u32,
-    /// Whether the packet gave up ([`Visits::hopeless`]) before its rays' search ended,
-    /// reporting no closest hits: its rays are to be traced another way.
-    pub gave_up: bool,
 }
 
 impl Visits {
@@ -188,8 +185,10 @@ impl Visits {
     }
 
     /// Whether a packet, so far, has reached at least [`Visits::GIVE_UP_FROM`] leaves and
-    /// is [`wasteful`](Visits::wasteful): then it stops, and its rays go one by one. What
-    /// it spent is bounded by that count; what it saves is unbounded.
+    /// is [`wasteful`](Visits::wasteful): then it stops, reporting no closest hit, and its
+    /// rays are to be traced another way. A packet is judged after every leaf, so it
+    /// returns hopeless visits exactly when it gave up. What it spent is bounded by that
+    /// count; what it saves is unbounded.
     pub fn hopeless(self) -> bool {
         self.leaves >= Self::GIVE_UP_FROM && self.wasteful()
     }
@@ -955,7 +954,6 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             visits.entered += u32::from(visits.entries > entries_before);
             if visits.hopeless() {
                 // Nothing is reported: the caller traces the rays another way.
-                visits.gave_up = true;
                 return Some(visits);
             }
             if improved {
@@ -1521,19 +1519,16 @@ mod tests {
             leaves: 40,
             entries: 40 / Visits::MOST_LEAVES_PER_ENTRY - 1,
             entered: 20,
-            gave_up: false,
         };
         let useful = Visits {
             leaves: 40,
             entries: 40 / Visits::MOST_LEAVES_PER_ENTRY,
             entered: 20,
-            gave_up: false,
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
             entered: 0,
-            gave_up: false,
         };
         assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
         // A packet gives up only once it has reached that many leaves, and is wasteful.
@@ -1581,7 +1576,6 @@ mod tests {
             leaves: 200,
             entries,
             entered: 32,
-            gave_up: false,
         };
         let (scattered, shared) = (visits(34), visits(35));
         assert!(scattered.wasteful() && shared.wasteful());
@@ -1592,7 +1586,6 @@ mod tests {
                 leaves: 200,
                 entries: entered,
                 entered,
-                gave_up: false,
             };
             assert!(few.wasteful() && !few.scattered());
         }
@@ -1601,7 +1594,6 @@ mod tests {
                 leaves: 200,
                 entries: Visits::JUDGED_FROM,
                 entered: Visits::JUDGED_FROM,
-                gave_up: false,
             }
             .scattered()
         );

@@ -490,7 +490,7 @@ impl Scene {
             return GroupTrace::OneByOne;
         };
         crate::packet::record(tree, visits);
-        match visits.gave_up {
+        match visits.hopeless() {
             false => GroupTrace::Packet,
             // As the spell the packet has just begun will trace the next groups.
             true if visits.scattered() => GroupTrace::SideBySide,

@@ -654,7 +654,6 @@ unsafe fn trace<const ANY: bool>(
             visits.entered += u32::from(visits.entries > entries_before);
             if visits.hopeless() {
                 // No closest hit is reported (any hits found so far have been: they hold).
-                visits.gave_up = true;
                 return Some(visits);
             }
             if improved {
