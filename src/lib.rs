@@ -53,6 +53,8 @@ pub mod render;
 pub mod sampler;
 pub mod scene;
 #[cfg(target_arch = "x86_64")]
+mod shear_cull;
+#[cfg(target_arch = "x86_64")]
 pub mod simd;
 #[cfg(target_arch = "x86_64")]
 pub mod simd512;

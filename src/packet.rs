@@ -11,9 +11,10 @@
 //! triangles either ray by ray (a leaf's blocks two at a time, eight triangles per
 //! instruction, as a single ray tests them) or, where most of a row entered the box, each
 //! triangle against the row's eight rays at once. With AVX-512 ([`LeafLanes::Sixteen`])
-//! the box and the triangles take two rows at a time. A packet needs all its rays to share
-//! the signs of their direction (one near plane per axis); callers trace other rays one by
-//! one.
+//! the box and the triangles take two rows at a time. Rays from one origin first leave out
+//! the leaf's triangles that none of them can hit ([`crate::shear_cull`]), which changes
+//! no ray's answer. A packet needs all its rays to share the signs of their direction (one
+//! near plane per axis); callers trace other rays one by one.
 
 use std::arch::x86_64::*;
 use std::cell::Cell;
@@ -21,6 +22,7 @@ use std::mem::MaybeUninit;
 
 use crate::bvh::{Bounds, Bvh, LEAF, WIDTH, leaf_range};
 use crate::scene::TriangleRay;
+use crate::shear_cull::ShearCull;
 use crate::simd::{
     Hits, STACK, TriLanes, block_pair_test, block_test, distance, lanes3, lanes4, lanes8, pack,
     prefetch_child, push_sorted, row_constants, row_test, slab_test,
@@ -43,6 +45,9 @@ const ROW_TEST_FROM: u32 = 5;
 /// enter, were slower at 3 than with eight lanes; from 6 they are not (DEVELOPERS.md,
 /// which says how to compare).
 const WIDE_ROW_TEST_FROM: u32 = 6;
+/// Pairs of rows taking a leaf's triangles by the sixteen-lane row test from which the
+/// triangles no ray can hit are looked for first (`shear_cull`).
+const CULL_FROM_PAIRS: usize = 2;
 
 /// The bound below which a triangle distance may still matter to a ray whose nearest hit
 /// so far is `nearest`: strict for any-hit (`t < tmax`), ties admitted for closest (which
@@ -584,6 +589,24 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
         let r = 2 * pair;
         shared_axes[r] && shared_axes[r + 1] && axes[r * 8] == axes[r * 8 + 8]
     });
+    // Rays from one origin sharing their axes (a pinhole's tile) let a leaf's triangles
+    // that none of them can hit be found once per triangle (`shear_cull`).
+    let cull = if !SHIFTED
+        && packet.origin.iter().all(|&(lo, hi)| lo == hi)
+        && shared_axes.iter().all(|&shared| shared)
+        && (0..ROWS).all(|r| axes[r * 8] == axes[0])
+    {
+        // SAFETY: AVX2 is enabled where `trace` inlines.
+        let (sx, sy) = unsafe { (row_range(&shear_rows[0]), row_range(&shear_rows[1])) };
+        Some(ShearCull::new(
+            axes[0],
+            packet.origin.map(|(lo, _)| lo),
+            sx,
+            sy,
+        ))
+    } else {
+        None
+    };
     let nodes = bvh.nodes();
     if nodes.is_empty() {
         return Some(visits);
@@ -758,6 +781,23 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             visits.leaves += 1;
+            // The leaf's triangles no ray can hit, four bits per block; found when first
+            // needed.
+            let (mut missed_known, mut leaf_missed) = (cull.is_none(), 0u64);
+            macro_rules! missed {
+                () => {{
+                    if !missed_known {
+                        missed_known = true;
+                        if let Some(cull) = &cull {
+                            // SAFETY: AVX2 is enabled where `trace` inlines.
+                            leaf_missed = unsafe {
+                                cull.missed_in(&blocks[first as usize..(first + count) as usize])
+                            };
+                        }
+                    }
+                    leaf_missed
+                }};
+            }
             let entries_before = visits.entries;
 
             // Each of the leaf's triangles against the rays `8 · $row + i` of `$hits` at
@@ -768,11 +808,15 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             macro_rules! row_tests {
                 ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $fold:ident) => {{
                     let row = row_lanes!($row, $row_lanes);
+                    let missed = missed!();
                     'blocks: for b in first..first + count {
                         let block = &blocks[b as usize];
                         for l in 0..BLOCK {
                             if ANY && $hits == 0 {
                                 break 'blocks;
+                            }
+                            if missed >> ((b - first) as usize * BLOCK + l) & 1 != 0 {
+                                continue;
                             }
                             // The last block repeats its last triangle in unused lanes.
                             if l > 0 && block.ids[l] == block.ids[l - 1] {
@@ -851,7 +895,14 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                 slot: search.near_slot.0[r][l].to_bits(),
                             };
                             let mut hit = None;
+                            let missed = missed!();
                             while b < end {
+                                // Blocks whose every triangle no ray can hit are skipped.
+                                let tested = if b + 1 < end { 0xff } else { 0xf };
+                                if missed >> ((b - first) as usize * BLOCK) & tested == tested {
+                                    b += 2;
+                                    continue;
+                                }
                                 let limit = t_triangle::<ANY>(nearest);
                                 let (mask, kept) = if b + 1 < end {
                                     let (mask, lanes) = unsafe {
@@ -912,7 +963,10 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 // Two rows at a time: the box against sixteen rays, then each triangle
                 // against both rows at once where enough of them entered and they share
                 // their axes, otherwise row by row.
-                for (pair, &shared) in shared_pairs.iter().enumerate() {
+                // The box against every pair first (a pair's tests change only its own
+                // rays' bounds), so that the triangles none can hit are looked for only
+                // where enough pairs would test them together.
+                let entered: [u32; ROWS / 2] = std::array::from_fn(|pair| {
                     let r = 2 * pair;
                     // SAFETY: rows are 64-byte aligned, so rows `r` and `r + 1` are sixteen
                     // floats on a 64-byte boundary; AVX-512F is enabled where `trace`
@@ -921,10 +975,22 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     let group = GroupLanes::read([origin, inv, inv_far], (near, far), pair_lanes);
                     // SAFETY: plane offsets plus the slot stay within the node's 6 × 8
                     // floats; AVX-512F is enabled where `trace` inlines.
-                    let mut hits = unsafe {
+                    unsafe {
                         let (tmin, tmax) = (pair_lanes(tmin), pair_lanes(&search.t_box));
                         simd512::leaf_box_test(&group, planes, slot, tmin, tmax)
-                    };
+                    }
+                });
+                let row_tested = (0..ROWS / 2)
+                    .filter(|&p| entered[p].count_ones() >= WIDE_ROW_TEST_FROM && shared_pairs[p])
+                    .count();
+                if row_tested < CULL_FROM_PAIRS {
+                    missed_known = true;
+                }
+                for (pair, &shared) in shared_pairs.iter().enumerate() {
+                    let r = 2 * pair;
+                    // SAFETY: as above.
+                    let pair_lanes = |rows: &Rows| unsafe { _mm512_load_ps(rows.0[r].as_ptr()) };
+                    let mut hits = entered[pair];
                     visits.entries += hits.count_ones();
                     if hits.count_ones() >= WIDE_ROW_TEST_FROM && shared {
                         row_tests!(r, hits, pair_lanes, simd512::row_test, fold_row_hits16);
@@ -973,6 +1039,29 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             finish!();
         };
         current = next;
+    }
+}
+
+/// The smallest and the largest of a packet's values in `rows` (lanes past its rays
+/// repeat its last ray).
+///
+/// # Safety
+/// Only from a function with AVX2 enabled.
+#[inline(always)]
+unsafe fn row_range(rows: &Rows) -> (f32, f32) {
+    // SAFETY: AVX2 is enabled in the caller; rows are 32-byte aligned arrays of eight floats.
+    unsafe {
+        let first = _mm256_load_ps(rows.0[0].as_ptr());
+        let (mut lo, mut hi) = (first, first);
+        for row in &rows.0[1..] {
+            let x = _mm256_load_ps(row.as_ptr());
+            (lo, hi) = (_mm256_min_ps(lo, x), _mm256_max_ps(hi, x));
+        }
+        let (lo, hi) = (lanes8(lo), lanes8(hi));
+        (
+            lo.into_iter().fold(f32::INFINITY, f32::min),
+            hi.into_iter().fold(f32::NEG_INFINITY, f32::max),
+        )
     }
 }
 
