@@ -962,10 +962,9 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             if WIDE {
                 // Two rows at a time: the box against sixteen rays, then each triangle
                 // against both rows at once where enough of them entered and they share
-                // their axes, otherwise row by row.
-                // The box against every pair first (a pair's tests change only its own
-                // rays' bounds), so that the triangles none can hit are looked for only
-                // where enough pairs would test them together.
+                // their axes, otherwise row by row. The box goes first against every pair
+                // (a pair's tests change only its own rays' bounds), so that the triangles
+                // none can hit are looked for only where enough pairs will test them.
                 let entered: [u32; ROWS / 2] = std::array::from_fn(|pair| {
                     let r = 2 * pair;
                     // SAFETY: rows are 64-byte aligned, so rows `r` and `r + 1` are sixteen
