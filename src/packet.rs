@@ -12,7 +12,7 @@
 //! instruction, as a single ray tests them) or, where most of a row entered the box, each
 //! triangle against the row's eight rays at once. With AVX-512 ([`LeafLanes::Sixteen`])
 //! the box and the triangles take two rows at a time. Rays from one origin first leave out
-//! the leaf's triangles that none of them can hit ([`crate::shear_cull`]), which changes
+//! the leaf's triangles that none of them can hit (module `shear_cull`), which changes
 //! no ray's answer. A packet needs all its rays to share the signs of their direction (one
 //! near plane per axis); callers trace other rays one by one.
 
