@@ -45,8 +45,9 @@ const ROW_TEST_FROM: u32 = 5;
 /// enter, were slower at 3 than with eight lanes; from 6 they are not (DEVELOPERS.md,
 /// which says how to compare).
 const WIDE_ROW_TEST_FROM: u32 = 6;
-/// Pairs of rows taking a leaf's triangles by the sixteen-lane row test from which the
-/// triangles no ray can hit are looked for first (`shear_cull`).
+/// Pairs of rows taking a leaf's triangles by the sixteen-lane row test (or twice as many
+/// rows by the eight-lane one) from which the triangles no ray can hit are looked for
+/// first (`shear_cull`): where fewer do, looking costs about what it saves.
 const CULL_FROM_PAIRS: usize = 2;
 
 /// The bound below which a triangle distance may still matter to a ray whose nearest hit
@@ -999,19 +1000,28 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                     }
                 }
             } else {
-                for r in 0..ROWS {
+                // The box first against every row, as for pairs above.
+                let entered: [u32; ROWS] = std::array::from_fn(|r| {
                     // SAFETY: rows are 32-byte aligned arrays of eight floats.
                     let lane = |rows: &Rows| unsafe { _mm256_load_ps(rows.0[r].as_ptr()) };
                     let group = GroupLanes::read([origin, inv, inv_far], (near, far), lane);
                     // The single-ray test, the leaf's box against eight rays.
-                    // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats.
-                    let (_, entered) = unsafe {
-                        slab_test! { &group, planes, slot, lane(tmin), lane(&search.t_box),
-                        broadcast_ps, _mm256_sub_ps, _mm256_mul_ps, _mm256_max_ps, _mm256_min_ps,
-                        _mm256_cmp_ps }
-                    };
-                    // SAFETY: AVX2 is enabled where `trace` inlines.
-                    let hits = unsafe { _mm256_movemask_ps(entered) } as u32;
+                    // SAFETY: plane offsets plus the slot stay within the node's 6 × 8 floats;
+                    // AVX2 is enabled where `trace` inlines.
+                    unsafe {
+                        let (_, entered) = slab_test! { &group, planes, slot, lane(tmin),
+                        lane(&search.t_box), broadcast_ps, _mm256_sub_ps, _mm256_mul_ps,
+                        _mm256_max_ps, _mm256_min_ps, _mm256_cmp_ps };
+                        _mm256_movemask_ps(entered) as u32
+                    }
+                });
+                let row_tested = (0..ROWS)
+                    .filter(|&r| entered[r].count_ones() >= ROW_TEST_FROM && shared_axes[r])
+                    .count();
+                if row_tested < 2 * CULL_FROM_PAIRS {
+                    missed_known = true;
+                }
+                for (r, &hits) in entered.iter().enumerate() {
                     visits.entries += hits.count_ones();
                     row_triangles!(r, hits);
                 }
