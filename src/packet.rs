@@ -782,22 +782,20 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             let (first, count) = leaf_range(node.children[slot]);
             let mut improved = false;
             visits.leaves += 1;
-            // The leaf's triangles no ray can hit, four bits per block; found when first
-            // needed.
-            let (mut missed_known, mut leaf_missed) = (cull.is_none(), 0u64);
-            macro_rules! missed {
-                () => {{
-                    if !missed_known {
-                        missed_known = true;
-                        if let Some(cull) = &cull {
-                            // SAFETY: AVX2 is enabled where `trace` inlines.
-                            leaf_missed = unsafe {
-                                cull.missed_in(&blocks[first as usize..(first + count) as usize])
-                            };
-                        }
+            // The leaf's triangles no ray can hit, four bits per block: looked for, once the
+            // box is tested, only where enough rows will test them together
+            // (`CULL_FROM_PAIRS`).
+            let leaf_missed: u64;
+            macro_rules! look_for_missed {
+                ($worth:expr) => {
+                    leaf_missed = match &cull {
+                        // SAFETY: AVX2 is enabled where `trace` inlines.
+                        Some(cull) if $worth => unsafe {
+                            cull.missed_in(&blocks[first as usize..(first + count) as usize])
+                        },
+                        _ => 0,
                     }
-                    leaf_missed
-                }};
+                };
             }
             let entries_before = visits.entries;
 
@@ -809,14 +807,13 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             macro_rules! row_tests {
                 ($row:expr, $hits:ident, $row_lanes:ident, $test:path, $fold:ident) => {{
                     let row = row_lanes!($row, $row_lanes);
-                    let missed = missed!();
                     'blocks: for b in first..first + count {
                         let block = &blocks[b as usize];
                         for l in 0..BLOCK {
                             if ANY && $hits == 0 {
                                 break 'blocks;
                             }
-                            if missed >> ((b - first) as usize * BLOCK + l) & 1 != 0 {
+                            if leaf_missed >> ((b - first) as usize * BLOCK + l) & 1 != 0 {
                                 continue;
                             }
                             // The last block repeats its last triangle in unused lanes.
@@ -896,11 +893,11 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                                 slot: search.near_slot.0[r][l].to_bits(),
                             };
                             let mut hit = None;
-                            let missed = missed!();
                             while b < end {
                                 // Blocks whose every triangle no ray can hit are skipped.
                                 let tested = if b + 1 < end { 0xff } else { 0xf };
-                                if missed >> ((b - first) as usize * BLOCK) & tested == tested {
+                                if leaf_missed >> ((b - first) as usize * BLOCK) & tested == tested
+                                {
                                     b += 2;
                                     continue;
                                 }
@@ -983,9 +980,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 let row_tested = (0..ROWS / 2)
                     .filter(|&p| entered[p].count_ones() >= WIDE_ROW_TEST_FROM && shared_pairs[p])
                     .count();
-                if row_tested < CULL_FROM_PAIRS {
-                    missed_known = true;
-                }
+                look_for_missed!(row_tested >= CULL_FROM_PAIRS);
                 for (pair, &shared) in shared_pairs.iter().enumerate() {
                     let r = 2 * pair;
                     // SAFETY: as above.
@@ -1018,9 +1013,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
                 let row_tested = (0..ROWS)
                     .filter(|&r| entered[r].count_ones() >= ROW_TEST_FROM && shared_axes[r])
                     .count();
-                if row_tested < 2 * CULL_FROM_PAIRS {
-                    missed_known = true;
-                }
+                look_for_missed!(row_tested >= 2 * CULL_FROM_PAIRS);
                 for (r, &hits) in entered.iter().enumerate() {
                     visits.entries += hits.count_ones();
                     row_triangles!(r, hits);
