@@ -31,22 +31,29 @@ impl Plane {
 const LANES: usize = 4;
 
 /// For each ray `rays[k]`, the nearest plane it crosses with `tmin < t < tmax`, as
-/// `(t, index in planes)`, into `out[k]`: what [`Plane::intersect`] over the planes in
-/// order, each below the nearest `t` so far, finds (the same `t`, the first of equal ones).
-pub fn nearest_planes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)>]) {
+/// `hit(t, index in planes)`, into `out[k]` (`None` where it crosses none): what
+/// [`Plane::intersect`] over the planes in order, each below the nearest `t` so far, finds
+/// (the same `t`, the first of equal ones). `hit` makes the caller's own record, so that
+/// nothing is copied from one form to another per ray.
+pub fn nearest_planes<T>(
+    planes: &[Plane],
+    rays: &[Ray],
+    out: &mut [Option<T>],
+    hit: impl Fn(f64, u32) -> T,
+) {
     assert_eq!(rays.len(), out.len());
     // Scenes of spheres alone come here too: no lanes to fill.
     if planes.is_empty() {
-        out.fill(None);
+        out.fill_with(|| None);
         return;
     }
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2.
-        unsafe { nearest_planes_avx2(planes, rays, out) };
+        unsafe { nearest_planes_avx2(planes, rays, out, hit) };
         return;
     }
-    nearest_in_lanes(planes, rays, out);
+    nearest_in_lanes(planes, rays, out, hit);
 }
 
 /// [`nearest_planes`] compiled for AVX2.
@@ -55,14 +62,24 @@ pub fn nearest_planes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u3
 /// The CPU must have AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn nearest_planes_avx2(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)>]) {
-    nearest_in_lanes(planes, rays, out);
+unsafe fn nearest_planes_avx2<T>(
+    planes: &[Plane],
+    rays: &[Ray],
+    out: &mut [Option<T>],
+    hit: impl Fn(f64, u32) -> T,
+) {
+    nearest_in_lanes(planes, rays, out, hit);
 }
 
 /// [`nearest_planes`]'s body: whole groups of [`LANES`] rays side by side, the rest one
 /// by one.
 #[inline(always)]
-fn nearest_in_lanes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)>]) {
+fn nearest_in_lanes<T>(
+    planes: &[Plane],
+    rays: &[Ray],
+    out: &mut [Option<T>],
+    hit: impl Fn(f64, u32) -> T,
+) {
     let mut groups = rays.chunks_exact(LANES);
     let mut outs = out.chunks_exact_mut(LANES);
     for (group, out) in (&mut groups).zip(&mut outs) {
@@ -72,17 +89,17 @@ fn nearest_in_lanes(planes: &[Plane], rays: &[Ray], out: &mut [Option<(f64, u32)
         for (i, plane) in planes.iter().enumerate() {
             let crossed = lanes.crossings(plane, &tmax);
             for l in 0..LANES {
-                let hit = crossed.hit[l];
-                tmax[l] = if hit { crossed.t[l] } else { tmax[l] };
-                nearest[l] = if hit { i as u32 } else { nearest[l] };
+                let crosses = crossed.hit[l];
+                tmax[l] = if crosses { crossed.t[l] } else { tmax[l] };
+                nearest[l] = if crosses { i as u32 } else { nearest[l] };
             }
         }
         for l in 0..LANES {
-            out[l] = (nearest[l] != u32::MAX).then_some((tmax[l], nearest[l]));
+            out[l] = (nearest[l] != u32::MAX).then(|| hit(tmax[l], nearest[l]));
         }
     }
     for (ray, out) in groups.remainder().iter().zip(outs.into_remainder()) {
-        *out = nearest_plane(planes, ray);
+        *out = nearest_plane(planes, ray).map(|(t, i)| hit(t, i));
     }
 }
 
@@ -265,8 +282,9 @@ mod tests {
         for n in 0..=rays.len() {
             let rays = &rays[..n];
             let (mut nearest, mut plain) = (vec![None; n], vec![None; n]);
-            nearest_planes(&planes, rays, &mut nearest);
-            nearest_in_lanes(&planes, rays, &mut plain);
+            let pair = |t, i| (t, i);
+            nearest_planes(&planes, rays, &mut nearest, pair);
+            nearest_in_lanes(&planes, rays, &mut plain, pair);
             let (mut any, mut plain_any) = (vec![false; n], vec![false; n]);
             any_planes(&planes, rays, &mut any);
             any_in_lanes(&planes, rays, &mut plain_any);

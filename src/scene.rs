@@ -1113,14 +1113,7 @@ fn wide_leaves_available() -> bool {
 
 /// [`nearest_plane`] of each of `rays`, into `out` (several rays at a time).
 pub fn nearest_planes(planes: &[Plane], rays: &[Ray], out: &mut [Option<Hit>]) {
-    let mut nearest = [None; PACKET];
-    for (rays, out) in rays.chunks(PACKET).zip(out.chunks_mut(PACKET)) {
-        let nearest = &mut nearest[..rays.len()];
-        crate::plane::nearest_planes(planes, rays, nearest);
-        for (out, nearest) in out.iter_mut().zip(nearest.iter()) {
-            *out = nearest.map(plane_hit);
-        }
-    }
+    crate::plane::nearest_planes(planes, rays, out, |t, i| plane_hit((t, i)));
 }
 
 /// The nearest of `planes` hit with `ray.tmin < t < ray.tmax`, if any.
