@@ -144,10 +144,9 @@ impl View {
                 let hashes = &hashes[..pixels.len()];
                 self.sampler
                     .group(hashes, s, (&mut u[..], &mut v[..]), lens);
-                for (i, &(x, dy)) in pixels.iter().enumerate() {
-                    u[i] = self.camera.screen_u(x, u[i]);
-                    v[i] = self.camera.screen_v(y0 + dy, v[i]);
-                }
+                let n = pixels.len();
+                self.camera
+                    .screen_coordinates(pixels, y0, &mut u[..n], &mut v[..n]);
             }
         }
         let n = pixels.len();
