@@ -126,6 +126,7 @@ impl View {
         s: u32,
         out: &mut [Ray],
     ) {
+        let n = pixels.len();
         let (mut u, mut v) = ([0.0; GROUP], [0.0; GROUP]);
         // Lens points: the centre for the `center` sampler, whose coordinates are tabled.
         let mut lens = [crate::sampler::CENTER; GROUP];
@@ -141,15 +142,13 @@ impl View {
                 // Offsets first, then coordinates: the divisions of one pixel no longer
                 // wait for its hashes, and overlap with other pixels'.
                 let lens = has_lens.then_some(&mut lens[..]);
-                let hashes = &hashes[..pixels.len()];
+                let hashes = &hashes[..n];
                 self.sampler
                     .group(hashes, s, (&mut u[..], &mut v[..]), lens);
-                let n = pixels.len();
                 self.camera
                     .screen_coordinates(pixels, y0, &mut u[..n], &mut v[..n]);
             }
         }
-        let n = pixels.len();
         if has_lens {
             self.camera
                 .lens_rays(&u[..n], &v[..n], &lens[..n], &mut out[..n]);
