@@ -38,8 +38,8 @@ impl Image {
     pub fn new(width: u32, height: u32, format: OutputFormat, encoding: Encoding) -> Image {
         let n = width as usize * height as usize * 3;
         let pixels = match format {
-            OutputFormat::Ppm(_) => Pixels::Rgb8(vec![0; n]),
-            OutputFormat::Pfm => Pixels::RgbF32(vec![0.0; n]),
+            OutputFormat::Ppm(_) => Pixels::Rgb8(zeroed(n)),
+            OutputFormat::Pfm => Pixels::RgbF32(zeroed(n)),
         };
         Image {
             width,
@@ -134,6 +134,21 @@ impl Image {
             _ => write_parts_atomically(path, &self.file_parts()),
         }
     }
+}
+
+/// `n` zeros; a large image's on every worker thread. A full-HD PFM is 25 MB, zeroed and
+/// first touched (each page a fault) on the thread that makes the image while the workers
+/// waited; the pixels are written in parallel bands anyway.
+fn zeroed<T: Copy + Default + Send + Sync>(n: usize) -> Vec<T> {
+    /// Bytes below which the calling thread zeroes the image itself (a worker's wake-up
+    /// costs more).
+    const PARALLEL_FROM_BYTES: usize = 1 << 20;
+    if n * std::mem::size_of::<T>() < PARALLEL_FROM_BYTES {
+        return vec![T::default(); n];
+    }
+    let mut zeros = Vec::with_capacity(n);
+    zeros.par_extend(rayon::iter::repeat_n(T::default(), n));
+    zeros
 }
 
 /// Rows of `P3` text formatted by one task.
@@ -1090,6 +1105,19 @@ mod tests {
             assert!(bytes <= 256 * 1024, "{bytes} bytes offered in one call");
             assert!(slices <= 512, "{slices} slices offered in one call");
             assert!(bytes > 0, "an empty call");
+        }
+    }
+
+    #[test]
+    fn images_of_every_size_start_black_on_either_side_of_the_parallel_threshold() {
+        // Float32 pixels cross 1 MB at 262,144 values, bytes at 1,048,576.
+        for n in [0, 1, 262_143, 262_144, 262_145, 1_048_577, 3_000_001] {
+            let floats: Vec<f32> = zeroed(n);
+            assert_eq!(floats.len(), n);
+            assert!(floats.iter().all(|&x| x.to_bits() == 0), "{n} floats");
+            let bytes: Vec<u8> = zeroed(n);
+            assert_eq!(bytes.len(), n);
+            assert!(bytes.iter().all(|&x| x == 0), "{n} bytes");
         }
     }
 
