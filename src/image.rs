@@ -711,10 +711,10 @@ fn exchange(a: &Path, b: &Path) -> io::Result<()> {
 /// Bytes offered to the kernel per call. Linux 6.x caches one large write to ext4 in
 /// folios of up to 2 MB, and on a virtual machine whose free memory goes back to its host
 /// (free page reporting) such blocks are the ones the host must supply again on first
-/// touch: a 25 MB PFM written in calls of 2 MB or more took 50–85 ms on the development
-/// machine, in calls of 1 MB or less 6–8 ms (DEVELOPERS.md, "Images are written a
-/// quarter megabyte at a time"). Elsewhere, 100 calls for a full-HD PFM cost nothing to
-/// speak of.
+/// touch: 25 MB written to a new file in calls of 4 MB took 26–83 ms on the development
+/// machine, in calls of 256 KB 6–8 ms (DEVELOPERS.md, "Images are written a quarter
+/// megabyte at a time", gives the commands). Elsewhere, 100 calls for a full-HD PFM cost
+/// nothing to speak of.
 const BYTES_PER_CALL: usize = 256 * 1024;
 
 /// Slices per call at most (Linux takes up to 1024; std passes at most the system's limit).
