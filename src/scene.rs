@@ -668,12 +668,13 @@ impl Scene {
     }
 
     /// Whether [`Scene::closest_hits`] can trace these rays (at most one packet's worth) as
-    /// a packet rather than one by one: AVX2, the same direction signs for all, finite
-    /// origins and directions and no NaN `tmin`. (Just after wasteful packets it still
-    /// goes one by one, see [`crate::packet::Visits`].)
+    /// a packet rather than one by one: AVX2, the same direction signs for all, origins
+    /// and directions finite in float32 and no NaN `tmin`. (Just after wasteful packets it
+    /// still goes one by one, see [`crate::packet::Visits`].)
     pub fn traces_as_packet(&self, rays: &[Ray]) -> bool {
         let signs = |r: &Ray| r.direction.as_vec3().to_array().map(f32::is_sign_negative);
-        let usable = |r: &Ray| finite(r) && !r.tmin.is_nan();
+        let finite32 = |v: DVec3| v.as_vec3().is_finite();
+        let usable = |r: &Ray| finite32(r.origin) && finite32(r.direction) && !r.tmin.is_nan();
         self.simd
             && rays.len() <= PACKET
             && rays
@@ -1261,9 +1262,21 @@ impl TriangleRay {
         tmax: 0.0,
     };
 
+    /// The ray rounded for the scalar searches: with its interval rounded outward to
+    /// float32, or empty when its origin or direction is not finite in float32. (Such a
+    /// ray hits no triangle, but its slabs are NaN, which the box tests pass over, as they
+    /// must for a ray along a box's face: it would enter every slot, the empty ones too,
+    /// whose reference leads back to the root, and go round the tree for ever. The AVX2
+    /// searches turn it away at the tree's box: [`crate::simd::enters`].)
     #[inline(always)]
     pub(crate) fn new(ray: &Ray, tmax: f64) -> TriangleRay {
-        TriangleRay::rounded(ray, (bvh::f32_at_most(ray.tmin), bvh::f32_at_least(tmax)))
+        let finite = |v: DVec3| v.as_vec3().is_finite();
+        let interval = if finite(ray.origin) && finite(ray.direction) {
+            (bvh::f32_at_most(ray.tmin), bvh::f32_at_least(tmax))
+        } else {
+            (f32::INFINITY, f32::NEG_INFINITY)
+        };
+        TriangleRay::rounded(ray, interval)
     }
 
     /// The ray with its interval `(tmin, tmax)` already rounded outward to float32.
@@ -1353,6 +1366,11 @@ impl TriangleTree {
     /// The triangle blocks in leaf order (for inspection and tests).
     pub fn blocks(&self) -> &[TriangleBlock] {
         &self.blocks
+    }
+
+    /// The tree over the blocks (for inspection and tests).
+    pub fn bvh(&self) -> &Bvh<f32> {
+        &self.bvh
     }
 
     /// Bytes of blocks, tree nodes and hint roots (counted whether made yet or not).

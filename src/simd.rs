@@ -275,6 +275,11 @@ pub(crate) unsafe fn inverse([dx, dy, dz]: [f32; 3]) -> __m128 {
 /// a rejected ray one division and a 4-lane test instead of the full set-up of its lanes.
 /// `inv` is `1/d` in lanes 0–2 (from [`inverse`] or [`ray_constants`]).
 ///
+/// A ray whose origin or direction is not finite never enters. It hits no triangle, but
+/// its slabs are NaN, which the test passes over (as it must for a ray along a face), and
+/// the node tests would take it into every slot, the empty ones too, whose reference
+/// leads back to the root: round the tree until the stack overflowed.
+///
 /// # Safety
 /// Only from a function with AVX2 enabled.
 #[inline(always)]
@@ -290,6 +295,8 @@ pub(crate) unsafe fn enters(
     unsafe {
         let d = _mm_setr_ps(dx, dy, dz, 1.0);
         let o = _mm_setr_ps(ox, oy, oz, 0.0);
+        // `x − x` is 0 where `x` is finite, NaN where it is infinite or NaN.
+        let finite = _mm_movemask_ps(_mm_cmpunord_ps(_mm_sub_ps(o, o), _mm_sub_ps(d, d))) == 0;
         let inv_far = _mm_mul_ps(inv, _mm_set1_ps(<f32 as crate::bvh::Scalar>::EXIT_SCALE));
         let lo = _mm_setr_ps(lo[0], lo[1], lo[2], 0.0);
         let hi = _mm_setr_ps(hi[0], hi[1], hi[2], 0.0);
@@ -312,7 +319,7 @@ pub(crate) unsafe fn enters(
             far,
             _mm_min_ss(lane!(far, 1), _mm_min_ss(lane!(far, 2), _mm_set_ss(tmax))),
         );
-        _mm_cvtss_f32(enter) <= _mm_cvtss_f32(exit)
+        finite & (_mm_cvtss_f32(enter) <= _mm_cvtss_f32(exit))
     }
 }
 

@@ -1091,7 +1091,9 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
     // A NaN drops out of a packet's ranges of origin and direction, and a ray non-finite
     // on every axis has a NaN slab on each (`∞ − ∞`, `0 · ∞`): box bounds then admit
     // every slot of a node, empty ones too, whose reference leads back to the root. Three
-    // spheres leave most of the root's slots empty; the mesh adds triangle packets.
+    // spheres leave most of the root's slots empty; the icosphere adds triangle packets,
+    // and the torus a triangle tree with empty slots (a NaN ray went round it until the
+    // stack overflowed: a lens focused closer than its origin's precision made one).
     let spheres = vec![
         Sphere {
             center: DVec3::new(-0.8, 0.0, 0.0),
@@ -1118,6 +1120,12 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
         spheres,
         ..with_mesh.clone()
     };
+    let gapped = placed(&procedural::torus(1.0, 0.3, 200, 100), DMat4::IDENTITY);
+    let tree = Scene::build(&gapped).triangle_tree().clone();
+    assert!(
+        (tree.bvh().nodes().iter()).any(|node| node.children.contains(&0)),
+        "the torus's tree has an empty slot (the root is no node's child)"
+    );
     // Rays from one eye to an 8 × 8 grid across the scene: their directions share signs.
     let eye = DVec3::new(3.0, 2.5, -4.0);
     let good: Vec<Ray> = (0..64)
@@ -1126,10 +1134,15 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
             ray(eye, DVec3::new(grid(k % 8), grid(k / 8), 0.0))
         })
         .collect();
-    for geometry in [&only_spheres, &with_mesh, &both] {
+    let kernels: &[bool] = if has_avx2() { &[true, false] } else { &[false] };
+    for (geometry, &simd) in [&only_spheres, &with_mesh, &both, &gapped]
+        .into_iter()
+        .flat_map(|g| kernels.iter().map(move |simd| (g, simd)))
+    {
         let mut scene = Scene::build(geometry);
         scene.set_grouping(Grouping::Packets);
-        assert!(!has_avx2() || scene.traces_as_packet(&good));
+        scene.set_simd(simd);
+        assert!(!simd || scene.traces_as_packet(&good));
         for (case, spoil) in [
             (
                 "origin.y",
@@ -1143,6 +1156,8 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
             ("direction ∞", |r: &mut Ray| {
                 r.direction = DVec3::NEG_INFINITY
             }),
+            // Finite, but not in float32, in which triangles are traced.
+            ("origin 1e39", |r: &mut Ray| r.origin = DVec3::splat(1e39)),
         ] {
             for spoiled in [vec![0], vec![37], (0..64).collect()] {
                 let mut rays = good.clone();
