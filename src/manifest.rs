@@ -783,13 +783,17 @@ fn camera_desc(c: raw::Camera) -> Result<CameraDesc> {
         frame
     };
 
+    // Bounded as coordinates are: the lens moves ray origins by up to its radius.
     let aperture = match c.aperture {
-        Some(a) => finite_at_least("camera.aperture", a, 0.0)?,
+        Some(a) => bounded(
+            "camera.aperture",
+            finite_at_least("camera.aperture", a, 0.0)?,
+        )?,
         None => 0.0,
     };
     let focus_distance = match c.focus_distance {
         Some(f) => {
-            let f = finite("camera.focus_distance", f)?;
+            let f = bounded("camera.focus_distance", f)?;
             if f <= 0.0 {
                 return Err(ManifestError::invalid(
                     "camera.focus_distance",

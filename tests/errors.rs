@@ -191,6 +191,16 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
             vec!["camera.focus_distance", "required"],
         ),
         (
+            "camera-aperture.json",
+            m(r#""camera": {"aperture": 1e20, "focus_distance": 1}"#),
+            vec!["camera.aperture", "1e20 is out of range"],
+        ),
+        (
+            "camera-focus.json",
+            m(r#""camera": {"aperture": 0.1, "focus_distance": 1e20}"#),
+            vec!["camera.focus_distance", "1e20 is out of range"],
+        ),
+        (
             "material-name.json",
             m(
                 r#""materials": {"red": {"type": "diffuse", "albedo": [1, 0, 0]}},
