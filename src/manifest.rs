@@ -263,15 +263,21 @@ fn json_error(key: String, error: serde_json::Error) -> ManifestError {
     // serde_json appends " at line L column C" to its messages; the place is printed apart.
     let message = error.to_string();
     let suffix = format!(" at line {} column {}", error.line(), error.column());
-    let message = message
-        .strip_suffix(&suffix)
-        .unwrap_or(&message)
-        .to_string();
+    let message = message.strip_suffix(&suffix).unwrap_or(&message);
+    // A key within a `raw::Tagged` object, which names only the object, comes first.
+    let (key, message) = match message
+        .strip_prefix(raw::NESTED)
+        .and_then(|rest| rest.split_once(raw::NESTED))
+    {
+        Some((inner, message)) if inner.starts_with('[') => (format!("{key}{inner}"), message),
+        Some((inner, message)) => (format!("{key}.{inner}"), message),
+        None => (key, message),
+    };
     ManifestError::Json {
         line: error.line(),
         column: error.column(),
         key: (!key.is_empty() && key != ".").then_some(key),
-        message,
+        message: message.to_string(),
     }
 }
 
@@ -282,15 +288,49 @@ mod raw {
 
     use serde::Deserialize;
     use serde::de::value::MapAccessDeserializer;
-    use serde::de::{Deserializer, MapAccess, Visitor};
+    use serde::de::{self, Deserializer, IgnoredAny, MapAccess, SeqAccess, Visitor};
 
     use super::{Encoding, PpmStyle};
 
-    pub type Vec3 = [f64; 3];
+    pub type Vec3 = Numbers<3>;
 
-    /// A `T` read from a JSON object, and only from one: serde's derived structs (and
-    /// internally tagged enums) also take an array of their fields in order, so that
-    /// `"image": [640, 480]` would pass unnoticed.
+    /// `N` numbers, from an array of exactly `N`. (serde's `[f64; N]` takes a longer array
+    /// for trailing text, and says "trailing characters", which names no cause.)
+    #[derive(Clone, Copy)]
+    pub struct Numbers<const N: usize>(pub [f64; N]);
+
+    impl<'de, const N: usize> Deserialize<'de> for Numbers<N> {
+        fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+            struct NumbersVisitor<const N: usize>;
+            impl<'de, const N: usize> Visitor<'de> for NumbersVisitor<N> {
+                type Value = Numbers<N>;
+                fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                    write!(f, "an array of {N} numbers")
+                }
+                fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Numbers<N>, A::Error> {
+                    let mut numbers = [0.0; N];
+                    for (i, x) in numbers.iter_mut().enumerate() {
+                        *x = (seq.next_element()?)
+                            .ok_or_else(|| de::Error::invalid_length(i, &self))?;
+                    }
+                    // The rest counted, to say how long the array is.
+                    let mut len = N;
+                    while seq.next_element::<IgnoredAny>()?.is_some() {
+                        len += 1;
+                    }
+                    if len > N {
+                        return Err(de::Error::invalid_length(len, &self));
+                    }
+                    Ok(Numbers(numbers))
+                }
+            }
+            deserializer.deserialize_seq(NumbersVisitor::<N>)
+        }
+    }
+
+    /// A `T` read from a JSON object, and only from one: serde's derived structs also take
+    /// an array of their fields in order, so that `"image": [640, 480]` would pass
+    /// unnoticed.
     pub struct Object<T>(pub T);
 
     impl<'de, T: Deserialize<'de>> Deserialize<'de> for Object<T> {
@@ -307,6 +347,68 @@ mod raw {
             }
             let object = deserializer.deserialize_map(ObjectVisitor(PhantomData))?;
             Ok(Object(object))
+        }
+    }
+
+    /// An object that names its variant of `E` under `"type"` (`{"type": "stratified",
+    /// "spp": 16}`), read as the externally tagged `E` (`{"stratified": {"spp": 16}}`).
+    /// serde's internally tagged enums read such an object into a buffer first, and an
+    /// error in a field then names only the object; here the fields are read again by a
+    /// deserializer that tracks them, and an error names its key within the object (the
+    /// message starts with [`NESTED`], the key, [`NESTED`] again: see `json_error`).
+    pub struct Tagged<E>(pub E);
+
+    /// Brackets the key within a [`Tagged`] object at the start of an error message.
+    pub const NESTED: char = '\u{1f}';
+
+    impl<'de, E: serde::de::DeserializeOwned> Deserialize<'de> for Tagged<E> {
+        fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+            struct TaggedVisitor<E>(PhantomData<E>);
+            impl<'de, E: serde::de::DeserializeOwned> Visitor<'de> for TaggedVisitor<E> {
+                type Value = Tagged<E>;
+                fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                    f.write_str("a JSON object")
+                }
+                fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Tagged<E>, A::Error> {
+                    let nested = |key: &str, message: &dyn std::fmt::Display| {
+                        de::Error::custom(format_args!("{NESTED}{key}{NESTED}{message}"))
+                    };
+                    let mut fields = serde_json::Map::new();
+                    while let Some((key, value)) = map.next_entry::<String, serde_json::Value>()? {
+                        if fields.contains_key(&key) {
+                            return Err(de::Error::custom(format_args!("duplicate field `{key}`")));
+                        }
+                        fields.insert(key, value);
+                    }
+                    let variant = match fields.remove("type") {
+                        Some(serde_json::Value::String(variant)) => variant,
+                        Some(other) => {
+                            return Err(nested(
+                                "type",
+                                &format_args!("expected a string, got {other}"),
+                            ));
+                        }
+                        None => return Err(de::Error::missing_field("type")),
+                    };
+                    let external = serde_json::Value::Object(serde_json::Map::from_iter([(
+                        variant,
+                        serde_json::Value::Object(fields),
+                    )]));
+                    match serde_path_to_error::deserialize::<_, E>(external) {
+                        Ok(e) => Ok(Tagged(e)),
+                        // The path starts at the variant, which is `type`'s value: none
+                        // for an unknown variant, only the variant for a missing field.
+                        Err(error) => match error.path().to_string() {
+                            path if path == "." => Err(nested("type", error.inner())),
+                            path => match path.split_once('.') {
+                                Some((_, key)) => Err(nested(key, error.inner())),
+                                None => Err(de::Error::custom(error.inner())),
+                            },
+                        },
+                    }
+                }
+            }
+            deserializer.deserialize_map(TaggedVisitor(PhantomData))
         }
     }
 
@@ -350,11 +452,11 @@ mod raw {
         pub tmax: Option<f64>,
         pub background: Option<Vec3>,
         #[serde(default, deserialize_with = "optional_object")]
-        pub integrator: Option<Integrator>,
+        pub integrator: Option<Tagged<Integrator>>,
         #[serde(default, deserialize_with = "optional_object")]
-        pub sampler: Option<Sampler>,
+        pub sampler: Option<Tagged<Sampler>>,
         #[serde(default, deserialize_with = "named_objects")]
-        pub materials: Option<BTreeMap<String, Material>>,
+        pub materials: Option<BTreeMap<String, Tagged<Material>>>,
         #[serde(default, deserialize_with = "objects")]
         pub spheres: Option<Vec<Sphere>>,
         #[serde(default, deserialize_with = "objects")]
@@ -362,7 +464,7 @@ mod raw {
         #[serde(default, deserialize_with = "objects")]
         pub meshes: Option<Vec<Mesh>>,
         #[serde(default, deserialize_with = "objects")]
-        pub lights: Option<Vec<Light>>,
+        pub lights: Option<Vec<Tagged<Light>>>,
     }
 
     #[derive(Deserialize)]
@@ -387,7 +489,7 @@ mod raw {
     }
 
     #[derive(Deserialize)]
-    #[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
+    #[serde(rename_all = "lowercase", deny_unknown_fields)]
     pub enum Integrator {
         Hit {},
         Depth { scale: Option<f64> },
@@ -398,7 +500,7 @@ mod raw {
     }
 
     #[derive(Deserialize)]
-    #[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
+    #[serde(rename_all = "lowercase", deny_unknown_fields)]
     pub enum Sampler {
         Center { spp: Option<u32>, seed: Option<u64> },
         Independent { spp: Option<u32>, seed: Option<u64> },
@@ -406,7 +508,7 @@ mod raw {
     }
 
     #[derive(Deserialize)]
-    #[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
+    #[serde(rename_all = "lowercase", deny_unknown_fields)]
     pub enum Material {
         Diffuse {
             albedo: Vec3,
@@ -450,7 +552,7 @@ mod raw {
     #[derive(Deserialize)]
     #[serde(deny_unknown_fields)]
     pub struct Transform {
-        pub matrix: Option<[f64; 16]>,
+        pub matrix: Option<Numbers<16>>,
         /// A number or three numbers; checked by hand for a clear message.
         pub scale: Option<serde_json::Value>,
         #[serde(default, deserialize_with = "optional_object")]
@@ -466,7 +568,7 @@ mod raw {
     }
 
     #[derive(Deserialize)]
-    #[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
+    #[serde(rename_all = "lowercase", deny_unknown_fields)]
     pub enum Light {
         Point { position: Vec3, intensity: Vec3 },
         Directional { direction: Vec3, irradiance: Vec3 },
@@ -529,8 +631,8 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
         Some(c) => colour("background", c)?,
         None => [0.0; 3],
     };
-    let integrator = integrator_desc(raw.integrator)?;
-    let sampler = sampler_desc(raw.sampler)?;
+    let integrator = integrator_desc(raw.integrator.map(|raw::Tagged(i)| i))?;
+    let sampler = sampler_desc(raw.sampler.map(|raw::Tagged(s)| s))?;
 
     let (materials, material_ids) = materials(raw.materials.unwrap_or_default())?;
     let material = |key: &dyn Key, name: Option<String>| -> Result<Option<MaterialId>> {
@@ -610,7 +712,7 @@ fn validate(raw: raw::Manifest, path: &Path) -> Result<Manifest> {
     }
 
     let mut lights = Vec::new();
-    for (i, l) in raw.lights.unwrap_or_default().into_iter().enumerate() {
+    for (i, raw::Tagged(l)) in raw.lights.unwrap_or_default().into_iter().enumerate() {
         let key = |field: &str| format!("lights[{i}].{field}");
         lights.push(match l {
             raw::Light::Point {
@@ -896,10 +998,10 @@ fn sampler_desc(raw: Option<raw::Sampler>) -> Result<SamplerDesc> {
 }
 
 fn materials(
-    raw: BTreeMap<String, raw::Material>,
+    raw: BTreeMap<String, raw::Tagged<raw::Material>>,
 ) -> Result<(Vec<Material>, HashMap<String, MaterialId>)> {
     let mut materials = Vec::with_capacity(raw.len());
-    for (name, m) in raw {
+    for (name, raw::Tagged(m)) in raw {
         let key = |field: &str| format!("materials.{name}.{field}");
         let (kind, emission) = match m {
             raw::Material::Diffuse { albedo, emission } => (
@@ -951,7 +1053,7 @@ fn materials(
 
 fn transform_matrix(key: &str, t: raw::Transform) -> Result<DMat4> {
     let srt = t.scale.is_some() || t.rotate.is_some() || t.translate.is_some();
-    if let Some(m) = t.matrix {
+    if let Some(raw::Numbers(m)) = t.matrix {
         if srt {
             return Err(ManifestError::invalid(
                 key,
@@ -1074,7 +1176,7 @@ fn bounded(key: &(impl Key + ?Sized), x: f64) -> Result<f64> {
     Ok(x)
 }
 
-fn point(key: &(impl Key + ?Sized), v: raw::Vec3) -> Result<DVec3> {
+fn point(key: &(impl Key + ?Sized), raw::Numbers(v): raw::Vec3) -> Result<DVec3> {
     for (i, &x) in v.iter().enumerate() {
         bounded(&|| format!("{}[{i}]", key.spell()), x)?;
     }
@@ -1094,7 +1196,7 @@ fn direction(key: &(impl Key + ?Sized), v: raw::Vec3) -> Result<DVec3> {
     Ok(v / length)
 }
 
-fn colour(key: &str, c: raw::Vec3) -> Result<Rgb> {
+fn colour(key: &str, raw::Numbers(c): raw::Vec3) -> Result<Rgb> {
     for (i, &x) in c.iter().enumerate() {
         let x = bounded(&format!("{key}[{i}]"), x)?;
         if x < 0.0 {

@@ -79,6 +79,60 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
             m(r#""spheres": [{"center": [0, 3], "radius": 1}]"#),
             vec!["spheres[0].center", "invalid length 2"],
         ),
+        // serde's own arrays called a longer one "trailing characters".
+        (
+            "long-vector.json",
+            m(r#""spheres": [{"center": [0, 0, 3, 1], "radius": 1}]"#),
+            vec!["spheres[0].center: invalid length 4, expected an array of 3 numbers"],
+        ),
+        (
+            "long-matrix.json",
+            m(
+                r#""meshes": [{"file": "t.obj", "transform": {"matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0]}}]"#,
+            ),
+            vec!["meshes[0].transform.matrix: invalid length 17"],
+        ),
+        // In objects named by their "type" the failing field is named too.
+        (
+            "sampler-spp-type.json",
+            m(r#""sampler": {"type": "stratified", "spp": -4}"#),
+            vec!["sampler.spp: invalid value: integer `-4`"],
+        ),
+        (
+            "light-short-vector.json",
+            m(r#""lights": [{"type": "point", "position": [0, 3], "intensity": [1, 1, 1]}]"#),
+            vec!["lights[0].position: invalid length 2"],
+        ),
+        (
+            "albedo-item.json",
+            m(r#""materials": {"red": {"albedo": [1, "0", 0], "type": "diffuse"}}"#),
+            vec!["materials.red.albedo[1]: invalid type: string"],
+        ),
+        (
+            "light-missing.json",
+            m(r#""lights": [{"type": "directional", "direction": [0, -1, 0]}]"#),
+            vec!["lights[0]: missing field `irradiance`"],
+        ),
+        (
+            "sampler-type.json",
+            m(r#""sampler": {"spp": 4, "type": "halton"}"#),
+            vec!["sampler.type: unknown variant `halton`"],
+        ),
+        (
+            "integrator-type-number.json",
+            m(r#""integrator": {"type": 2}"#),
+            vec!["integrator.type: expected a string, got 2"],
+        ),
+        (
+            "integrator-no-type.json",
+            m(r#""integrator": {"scale": 2}"#),
+            vec!["integrator: missing field `type`"],
+        ),
+        (
+            "integrator-two-types.json",
+            m(r#""integrator": {"type": "hit", "type": "depth"}"#),
+            vec!["integrator: duplicate field `type`"],
+        ),
         (
             "huge-number.json",
             m(r#""spheres": [{"center": [0, 0, 1e999], "radius": 1}]"#),
@@ -138,12 +192,12 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
         (
             "integrator.json",
             m(r#""integrator": {"type": "toon"}"#),
-            vec!["integrator", "unknown variant `toon`"],
+            vec!["integrator.type: unknown variant `toon`"],
         ),
         (
             "integrator-key.json",
             m(r#""integrator": {"type": "depth", "scael": 2}"#),
-            vec!["integrator", "unknown field `scael`"],
+            vec!["integrator.scael: unknown field `scael`"],
         ),
         (
             "depth-scale.json",
