@@ -142,18 +142,32 @@ impl EmbreeScene {
         })
     }
 
-    /// Embree's ray for `(tmin, tmax)`: float32, bounds one step inside the interval.
-    fn embree_ray(ray: &Ray, tmax: f64) -> embree3::Ray {
+    /// Embree's ray for `(tmin, tmax)`: float32, bounds one step inside the interval, and
+    /// the near bound no smaller than the least normal float: Embree's threads read
+    /// subnormals as zero, and its test is inclusive, so `next_up(0)` let a ray starting
+    /// on a triangle hit it at `t = 0`. `None` for a ray Embree does not take, which
+    /// asserts (aborting the process) on a NaN bound or an origin or direction component
+    /// beyond [`EMBREE_LARGEST`]. Such a ray (a NaN direction, say, from a lens focused
+    /// closer than its origin's precision) hits nothing here, as in our tracer.
+    fn embree_ray(ray: &Ray, tmax: f64) -> Option<embree3::Ray> {
         let tnear = f32_at_most(ray.tmin).next_up();
         let tfar = f32_at_least(tmax).next_down();
-        embree3::Ray::segment(
-            ray.origin.as_vec3().to_array(),
-            ray.direction.as_vec3().to_array(),
-            tnear,
-            tfar,
-        )
+        let origin = ray.origin.as_vec3().to_array();
+        let direction = ray.direction.as_vec3().to_array();
+        let takes = |v: [f32; 3]| v.iter().all(|x| x.abs() <= EMBREE_LARGEST);
+        (takes(origin) && takes(direction) && !tnear.is_nan() && !tfar.is_nan())
+            .then(|| embree3::Ray::segment(origin, direction, tnear.max(f32::MIN_POSITIVE), tfar))
+    }
+
+    /// A ray a stream skips in place of one Embree does not take: `tfar < tnear` marks it
+    /// inactive, and its `tfar` is not the −∞ that marks an occluded ray.
+    fn skipped_ray() -> embree3::Ray {
+        embree3::Ray::segment([0.0; 3], [0.0, 0.0, 1.0], 0.0, -1.0)
     }
 }
+
+/// The largest origin or direction component Embree takes (its `FLT_LARGE`).
+const EMBREE_LARGEST: f32 = 1.844e18;
 
 impl Tracer for EmbreeScene {
     fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
@@ -162,7 +176,10 @@ impl Tracer for EmbreeScene {
             return plane;
         }
         let tmax = plane.map_or(ray.tmax, |h| h.t);
-        let mut query = RayHit::from_ray(Self::embree_ray(ray, tmax));
+        let Some(embree_ray) = Self::embree_ray(ray, tmax) else {
+            return plane;
+        };
+        let mut query = RayHit::from_ray(embree_ray);
         self.scene
             .intersect(&mut IntersectContext::incoherent(), &mut query);
         self.hit_of(&query).or(plane)
@@ -178,7 +195,8 @@ impl Tracer for EmbreeScene {
             .iter()
             .zip(out.iter())
             .map(|(ray, plane)| {
-                RayHit::from_ray(Self::embree_ray(ray, plane.map_or(ray.tmax, |h| h.t)))
+                let tmax = plane.map_or(ray.tmax, |h| h.t);
+                RayHit::from_ray(Self::embree_ray(ray, tmax).unwrap_or_else(Self::skipped_ray))
             })
             .collect();
         self.scene
@@ -198,7 +216,7 @@ impl Tracer for EmbreeScene {
         }
         let mut stream: Vec<embree3::Ray> = rays
             .iter()
-            .map(|ray| Self::embree_ray(ray, ray.tmax))
+            .map(|ray| Self::embree_ray(ray, ray.tmax).unwrap_or_else(Self::skipped_ray))
             .collect();
         self.scene
             .occluded_stream_aos(&mut IntersectContext::coherent(), &mut stream);
@@ -215,7 +233,9 @@ impl Tracer for EmbreeScene {
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return false;
         }
-        let mut query = Self::embree_ray(ray, ray.tmax);
+        let Some(mut query) = Self::embree_ray(ray, ray.tmax) else {
+            return false;
+        };
         self.scene
             .occluded(&mut IntersectContext::incoherent(), &mut query)
     }

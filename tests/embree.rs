@@ -81,6 +81,122 @@ fn the_embree_backend_renders_the_canonical_scene_exactly() {
 }
 
 #[test]
+fn rays_embree_does_not_take_hit_nothing_and_spoil_no_other_rays_answer() {
+    // Embree asserts, aborting the process, on a NaN bound or an origin or direction
+    // component beyond 1.844e18: a lens focused closer than its origin's precision made a
+    // NaN direction, and `verify` and `render --backend embree` ended there.
+    let mesh = Arc::new(MeshFile::one_geometry(procedural::icosphere(2)));
+    let mut geometry = SceneGeometry::default();
+    geometry
+        .add_mesh(&mesh, DMat4::IDENTITY, "ico".as_ref())
+        .unwrap();
+    geometry.spheres.push(raybatch::sphere::Sphere {
+        center: DVec3::new(0.0, 0.0, 3.0),
+        radius: 0.5,
+    });
+    let reference = EmbreeScene::build(&geometry).unwrap();
+    let good = |target: DVec3| {
+        let origin = DVec3::new(0.1, 0.2, -4.0);
+        Ray {
+            origin,
+            direction: (target - origin).normalize(),
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        }
+    };
+    let (ico, sphere) = (good(DVec3::ZERO), good(DVec3::new(0.0, 0.0, 3.0)));
+    assert!(reference.closest_hit(&ico).is_some() && reference.any_hit(&sphere));
+    let spoilt = [
+        Ray {
+            direction: DVec3::NAN,
+            ..ico
+        },
+        Ray {
+            origin: DVec3::new(0.0, 1e19, 0.0),
+            ..ico
+        },
+        Ray {
+            direction: DVec3::new(2e18, 0.0, 0.0),
+            ..ico
+        },
+        Ray {
+            tmin: f64::NAN,
+            ..ico
+        },
+        Ray {
+            tmax: f64::NAN,
+            ..sphere
+        },
+    ];
+    for ray in &spoilt {
+        assert_eq!(reference.closest_hit(ray), None, "{ray:?}");
+        assert!(!reference.any_hit(ray), "{ray:?}");
+    }
+    // In streams, between rays that hit.
+    let rays: Vec<Ray> = spoilt.iter().flat_map(|&r| [ico, r, sphere]).collect();
+    let mut closest = vec![None; rays.len()];
+    let mut any = vec![false; rays.len()];
+    reference.closest_hits(&rays, &mut closest);
+    reference.any_hits(&rays, &mut any);
+    for (k, ray) in rays.iter().enumerate() {
+        let hits = k % 3 != 1;
+        assert_eq!(closest[k].is_some(), hits, "{k}: {ray:?}");
+        assert_eq!(any[k], hits, "{k}: {ray:?}");
+    }
+}
+
+#[test]
+fn a_ray_starting_on_a_triangle_does_not_hit_it_at_t_zero_in_either_tracer() {
+    // Hits count for `tmin < t` only. Embree's threads read subnormals as zero and its
+    // test is inclusive, so a near bound of `next_up(0)` let these rays hit at `t = 0`
+    // (random manifests found it: a camera placed on a glTF quad).
+    let mesh = Arc::new(MeshFile::one_geometry(procedural::cube()));
+    let mut geometry = SceneGeometry::default();
+    geometry
+        .add_mesh(&mesh, DMat4::IDENTITY, "cube".as_ref())
+        .unwrap();
+    let ours = Scene::build(&geometry);
+    let reference = EmbreeScene::build(&geometry).unwrap();
+    let (lo, hi) = geometry
+        .triangles
+        .iter()
+        .flatten()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v[2]), hi.max(v[2]))
+        });
+    let mut checked = 0;
+    for z in [lo, hi] {
+        for (x, y) in [(0.0, 0.0), (0.1, -0.2), (-0.3, 0.05)] {
+            // Leaving the cube through the face the ray starts on, and along it.
+            for direction in [
+                DVec3::new(0.1, 0.2, -1.0),
+                DVec3::new(0.3, -0.1, 1.0),
+                DVec3::X,
+            ] {
+                let outward = f64::from(z) * direction.z > 0.0 || direction.z == 0.0;
+                if !outward {
+                    continue;
+                }
+                let ray = Ray {
+                    origin: DVec3::new(x, y, f64::from(z)),
+                    direction: direction.normalize(),
+                    tmin: 0.0,
+                    tmax: f64::INFINITY,
+                };
+                let (a, b) = (
+                    Tracer::closest_hit(&ours, &ray),
+                    reference.closest_hit(&ray),
+                );
+                assert!(a.is_none_or(|h| h.t > 0.0), "raybatch: {a:?} for {ray:?}");
+                assert!(b.is_none_or(|h| h.t > 0.0), "Embree: {b:?} for {ray:?}");
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 12);
+}
+
+#[test]
 fn embree_in_robust_mode_agrees_that_nothing_leaks() {
     let mesh = Arc::new(MeshFile::one_geometry(procedural::icosphere(3)));
     let mut geometry = SceneGeometry::default();
