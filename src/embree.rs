@@ -6,7 +6,9 @@
 //!
 //! Rays are the same float64 camera rays rounded to float32 as raybatch rounds them, and
 //! the strict interval `tmin < t < tmax` becomes Embree's inclusive `[tnear, tfar]` one
-//! float32 step inside it.
+//! float32 step inside it. A ray Embree would refuse (it aborts the process on NaN or
+//! huge values) hits nothing without reaching it; [`Unchecked`] leaves that check out,
+//! for `raybatch bench`, whose Embree figures are those of a program calling Embree.
 
 use embree3::{BufferUsage, Device, Format, GeometryKind, IntersectContext, RayHit, SceneFlags};
 use glam::DVec3;
@@ -145,18 +147,26 @@ impl EmbreeScene {
     /// Embree's ray for `(tmin, tmax)`: float32, bounds one step inside the interval, and
     /// the near bound no smaller than the least normal float: Embree's threads read
     /// subnormals as zero, and its test is inclusive, so `next_up(0)` let a ray starting
-    /// on a triangle hit it at `t = 0`. `None` for a ray Embree does not take, which
-    /// asserts (aborting the process) on a NaN bound or an origin or direction component
-    /// beyond [`EMBREE_LARGEST`]. Such a ray (a NaN direction, say, from a lens focused
-    /// closer than its origin's precision) hits nothing here, as in our tracer.
-    fn embree_ray(ray: &Ray, tmax: f64) -> Option<embree3::Ray> {
+    /// on a triangle hit it at `t = 0`. `CHECKED`, `None` for a ray Embree does not take,
+    /// which asserts (aborting the process) on a NaN bound or an origin or direction
+    /// component beyond [`EMBREE_LARGEST`]. Such a ray (a NaN direction, say, from a lens
+    /// focused closer than its origin's precision) hits nothing here, as in our tracer.
+    #[inline(always)]
+    fn embree_ray<const CHECKED: bool>(ray: &Ray, tmax: f64) -> Option<embree3::Ray> {
         let tnear = f32_at_most(ray.tmin).next_up();
         let tfar = f32_at_least(tmax).next_down();
         let origin = ray.origin.as_vec3().to_array();
         let direction = ray.direction.as_vec3().to_array();
-        let takes = |v: [f32; 3]| v.iter().all(|x| x.abs() <= EMBREE_LARGEST);
-        (takes(origin) && takes(direction) && !tnear.is_nan() && !tfar.is_nan())
-            .then(|| embree3::Ray::segment(origin, direction, tnear.max(f32::MIN_POSITIVE), tfar))
+        let refused = |v: [f32; 3]| v.iter().any(|x| x.is_nan() || x.abs() > EMBREE_LARGEST);
+        if CHECKED && (refused(origin) || refused(direction) || tnear.is_nan() || tfar.is_nan()) {
+            return None;
+        }
+        Some(embree3::Ray::segment(
+            origin,
+            direction,
+            tnear.max(f32::MIN_POSITIVE),
+            tfar,
+        ))
     }
 
     /// A ray a stream skips in place of one Embree does not take: `tfar < tnear` marks it
@@ -164,19 +174,14 @@ impl EmbreeScene {
     fn skipped_ray() -> embree3::Ray {
         embree3::Ray::segment([0.0; 3], [0.0, 0.0, 1.0], 0.0, -1.0)
     }
-}
 
-/// The largest origin or direction component Embree takes (its `FLT_LARGE`).
-const EMBREE_LARGEST: f32 = 1.844e18;
-
-impl Tracer for EmbreeScene {
-    fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+    fn closest<const CHECKED: bool>(&self, ray: &Ray) -> Option<Hit> {
         let plane = nearest_plane(&self.planes, ray);
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return plane;
         }
         let tmax = plane.map_or(ray.tmax, |h| h.t);
-        let Some(embree_ray) = Self::embree_ray(ray, tmax) else {
+        let Some(embree_ray) = Self::embree_ray::<CHECKED>(ray, tmax) else {
             return plane;
         };
         let mut query = RayHit::from_ray(embree_ray);
@@ -186,7 +191,7 @@ impl Tracer for EmbreeScene {
     }
 
     /// Embree's coherent stream API (`rtcIntersect1M`) over all the rays at once.
-    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+    fn closest_stream<const CHECKED: bool>(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
         nearest_planes(&self.planes, rays, out);
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return;
@@ -196,7 +201,8 @@ impl Tracer for EmbreeScene {
             .zip(out.iter())
             .map(|(ray, plane)| {
                 let tmax = plane.map_or(ray.tmax, |h| h.t);
-                RayHit::from_ray(Self::embree_ray(ray, tmax).unwrap_or_else(Self::skipped_ray))
+                let embree_ray = Self::embree_ray::<CHECKED>(ray, tmax);
+                RayHit::from_ray(embree_ray.unwrap_or_else(Self::skipped_ray))
             })
             .collect();
         self.scene
@@ -208,15 +214,29 @@ impl Tracer for EmbreeScene {
         }
     }
 
+    fn any<const CHECKED: bool>(&self, ray: &Ray) -> bool {
+        if crate::plane::any_plane(&self.planes, ray) {
+            return true;
+        }
+        if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
+            return false;
+        }
+        let Some(mut query) = Self::embree_ray::<CHECKED>(ray, ray.tmax) else {
+            return false;
+        };
+        self.scene
+            .occluded(&mut IntersectContext::incoherent(), &mut query)
+    }
+
     /// Embree's coherent stream API (`rtcOccluded1M`) over all the rays at once.
-    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+    fn any_stream<const CHECKED: bool>(&self, rays: &[Ray], out: &mut [bool]) {
         crate::plane::any_planes(&self.planes, rays, out);
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return;
         }
         let mut stream: Vec<embree3::Ray> = rays
             .iter()
-            .map(|ray| Self::embree_ray(ray, ray.tmax).unwrap_or_else(Self::skipped_ray))
+            .map(|ray| Self::embree_ray::<CHECKED>(ray, ray.tmax).unwrap_or_else(Self::skipped_ray))
             .collect();
         self.scene
             .occluded_stream_aos(&mut IntersectContext::coherent(), &mut stream);
@@ -225,19 +245,26 @@ impl Tracer for EmbreeScene {
             *out |= ray.tfar == f32::NEG_INFINITY;
         }
     }
+}
+
+/// The largest origin or direction component Embree takes (its `FLT_LARGE`).
+const EMBREE_LARGEST: f32 = 1.844e18;
+
+impl Tracer for EmbreeScene {
+    fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        self.closest::<true>(ray)
+    }
+
+    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        self.closest_stream::<true>(rays, out);
+    }
+
+    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        self.any_stream::<true>(rays, out);
+    }
 
     fn any_hit(&self, ray: &Ray) -> bool {
-        if crate::plane::any_plane(&self.planes, ray) {
-            return true;
-        }
-        if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
-            return false;
-        }
-        let Some(mut query) = Self::embree_ray(ray, ray.tmax) else {
-            return false;
-        };
-        self.scene
-            .occluded(&mut IntersectContext::incoherent(), &mut query)
+        self.any::<true>(ray)
     }
 
     fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
@@ -257,5 +284,41 @@ impl Tracer for EmbreeScene {
 
     fn counts(&self) -> SceneCounts {
         self.counts
+    }
+}
+
+/// The Embree queries of an [`EmbreeScene`] without its check of each ray, as a program
+/// calling Embree directly makes them: for rays known to be finite and in range, such as
+/// `raybatch bench`'s camera rays, so that its Embree figures are Embree's own. Embree
+/// aborts the process on any other ray.
+pub struct Unchecked<'a>(pub &'a EmbreeScene);
+
+impl Tracer for Unchecked<'_> {
+    fn closest_hit(&self, ray: &Ray) -> Option<Hit> {
+        self.0.closest::<false>(ray)
+    }
+
+    fn closest_hits(&self, rays: &[Ray], out: &mut [Option<Hit>]) {
+        self.0.closest_stream::<false>(rays, out);
+    }
+
+    fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
+        self.0.any_stream::<false>(rays, out);
+    }
+
+    fn any_hit(&self, ray: &Ray) -> bool {
+        self.0.any::<false>(ray)
+    }
+
+    fn normal(&self, ray: &Ray, hit: &Hit) -> DVec3 {
+        self.0.normal(ray, hit)
+    }
+
+    fn triangle_id(&self, slot: u32) -> u32 {
+        self.0.triangle_id(slot)
+    }
+
+    fn counts(&self) -> SceneCounts {
+        self.0.counts()
     }
 }
