@@ -158,7 +158,12 @@ impl EmbreeScene {
         let r = embree3::Ray::segment(
             ray.origin.as_vec3().to_array(),
             ray.direction.as_vec3().to_array(),
-            tnear.max(f32::MIN_POSITIVE),
+            // Not `max`, which would drop a NaN the check must see.
+            if tnear < f32::MIN_POSITIVE {
+                f32::MIN_POSITIVE
+            } else {
+                tnear
+            },
             tfar,
         );
         (!CHECKED || takes(&r)).then_some(r)
