@@ -147,26 +147,22 @@ impl EmbreeScene {
     /// Embree's ray for `(tmin, tmax)`: float32, bounds one step inside the interval, and
     /// the near bound no smaller than the least normal float: Embree's threads read
     /// subnormals as zero, and its test is inclusive, so `next_up(0)` let a ray starting
-    /// on a triangle hit it at `t = 0`. `CHECKED`, `None` for a ray Embree does not take,
-    /// which asserts (aborting the process) on a NaN bound or an origin or direction
-    /// component beyond [`EMBREE_LARGEST`]. Such a ray (a NaN direction, say, from a lens
-    /// focused closer than its origin's precision) hits nothing here, as in our tracer.
+    /// on a triangle hit it at `t = 0`. Embree may not take it (see [`takes`]).
     #[inline(always)]
-    fn embree_ray<const CHECKED: bool>(ray: &Ray, tmax: f64) -> Option<embree3::Ray> {
+    fn embree_ray(ray: &Ray, tmax: f64) -> embree3::Ray {
         let tnear = f32_at_most(ray.tmin).next_up();
         let tfar = f32_at_least(tmax).next_down();
-        let r = embree3::Ray::segment(
+        embree3::Ray::segment(
             ray.origin.as_vec3().to_array(),
             ray.direction.as_vec3().to_array(),
-            // Not `max`, which would drop a NaN the check must see.
+            // Not `max`, which would drop a NaN that `takes` must see.
             if tnear < f32::MIN_POSITIVE {
                 f32::MIN_POSITIVE
             } else {
                 tnear
             },
             tfar,
-        );
-        (!CHECKED || takes(&r)).then_some(r)
+        )
     }
 
     /// A ray a stream skips in place of one Embree does not take: `tfar < tnear` marks it
@@ -181,9 +177,10 @@ impl EmbreeScene {
             return plane;
         }
         let tmax = plane.map_or(ray.tmax, |h| h.t);
-        let Some(embree_ray) = Self::embree_ray::<CHECKED>(ray, tmax) else {
+        let embree_ray = Self::embree_ray(ray, tmax);
+        if CHECKED && !takes(&embree_ray) {
             return plane;
-        };
+        }
         let mut query = RayHit::from_ray(embree_ray);
         self.scene
             .intersect(&mut IntersectContext::incoherent(), &mut query);
@@ -201,7 +198,7 @@ impl EmbreeScene {
             .zip(out.iter())
             .map(|(ray, plane)| {
                 let tmax = plane.map_or(ray.tmax, |h| h.t);
-                RayHit::from_ray(Self::embree_ray::<false>(ray, tmax).expect("unchecked"))
+                RayHit::from_ray(Self::embree_ray(ray, tmax))
             })
             .collect();
         // Checked in a pass of its own: in the loop above the check made streams 9% slower.
@@ -226,9 +223,10 @@ impl EmbreeScene {
         if self.triangle_geometry.is_none() && self.sphere_geometry.is_none() {
             return false;
         }
-        let Some(mut query) = Self::embree_ray::<CHECKED>(ray, ray.tmax) else {
+        let mut query = Self::embree_ray(ray, ray.tmax);
+        if CHECKED && !takes(&query) {
             return false;
-        };
+        }
         self.scene
             .occluded(&mut IntersectContext::incoherent(), &mut query)
     }
@@ -241,7 +239,7 @@ impl EmbreeScene {
         }
         let mut stream: Vec<embree3::Ray> = rays
             .iter()
-            .map(|ray| Self::embree_ray::<false>(ray, ray.tmax).expect("unchecked"))
+            .map(|ray| Self::embree_ray(ray, ray.tmax))
             .collect();
         if CHECKED {
             for ray in stream.iter_mut().filter(|r| !takes(r)) {
@@ -260,7 +258,11 @@ impl EmbreeScene {
 /// The largest origin or direction component Embree takes (its `FLT_LARGE`).
 const EMBREE_LARGEST: f32 = 1.844e18;
 
-/// Whether Embree takes `r`: its own test (`RayK::valid`), without a branch per value.
+/// Whether Embree takes `r`: its own test (`RayK::valid`), without a branch per value. It
+/// asserts, aborting the process, on any other ray: one with a NaN bound, or an origin or
+/// direction component beyond [`EMBREE_LARGEST`]. With `CHECKED` the queries below give
+/// such a ray (a NaN direction, say, from a lens focused closer than its origin's
+/// precision) no hit without reaching Embree, as our tracer gives it none.
 #[inline(always)]
 fn takes(r: &embree3::Ray) -> bool {
     let within = |x: f32| x.abs() <= EMBREE_LARGEST;

@@ -673,8 +673,7 @@ impl Scene {
     /// still goes one by one, see [`crate::packet::Visits`].)
     pub fn traces_as_packet(&self, rays: &[Ray]) -> bool {
         let signs = |r: &Ray| r.direction.as_vec3().to_array().map(f32::is_sign_negative);
-        let finite32 = |v: DVec3| v.as_vec3().is_finite();
-        let usable = |r: &Ray| finite32(r.origin) && finite32(r.direction) && !r.tmin.is_nan();
+        let usable = |r: &Ray| finite_in_f32(r) && !r.tmin.is_nan();
         self.simd
             && rays.len() <= PACKET
             && rays
@@ -1189,6 +1188,12 @@ fn finite(ray: &Ray) -> bool {
     !(special(o.x) | special(o.y) | special(o.z) | special(d.x) | special(d.y) | special(d.z))
 }
 
+/// Whether the ray's origin and direction stay finite rounded to float32, as triangles are
+/// traced.
+fn finite_in_f32(ray: &Ray) -> bool {
+    ray.origin.as_vec3().is_finite() && ray.direction.as_vec3().is_finite()
+}
+
 /// Up to [`PACKET`] rays rounded for the triangle kernels, ray `k` with the interval
 /// `(tmin, tmax(k, ray))` rounded outward. With `avx2` (the CPU has it), compiled for it:
 /// the conversions of a ray's coordinates, and the roundings, then go four or eight at a
@@ -1270,8 +1275,7 @@ impl TriangleRay {
     /// searches turn it away at the tree's box: [`crate::simd::enters`].)
     #[inline(always)]
     pub(crate) fn new(ray: &Ray, tmax: f64) -> TriangleRay {
-        let finite = |v: DVec3| v.as_vec3().is_finite();
-        let interval = if finite(ray.origin) && finite(ray.direction) {
+        let interval = if finite_in_f32(ray) {
             (bvh::f32_at_most(ray.tmin), bvh::f32_at_least(tmax))
         } else {
             (f32::INFINITY, f32::NEG_INFINITY)
