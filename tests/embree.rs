@@ -1,5 +1,7 @@
 //! The Embree reference backend (cargo feature `embree`): verification of every shipped and
-//! stress scene, `render --backend embree`, and watertightness cross-checked with Embree.
+//! stress scene, `render --backend embree`, watertightness cross-checked with Embree, and
+//! the rays the backend must keep from Embree or bound for it (NaN, huge, starting on a
+//! surface).
 
 use std::sync::Arc;
 

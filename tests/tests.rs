@@ -12,7 +12,8 @@
 //! - `output`: file formats, encodings, output paths, `--out`, `--stats`.
 //! - `compare`: `raybatch compare` figures, limits and refusals.
 //! - `embree` (feature `embree`): every shipped and stress scene verified against Embree,
-//!   `render --backend embree`, watertightness cross-checked.
+//!   `render --backend embree`, watertightness cross-checked, rays Embree would abort on,
+//!   no hit at `t = 0`.
 //! - `meshes`: OBJ and glTF fixtures written by the tests.
 //! - `errors`: bad manifests and mesh files refused with a place and cause, no partial
 //!   files, batches going on, exit statuses.
