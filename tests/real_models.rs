@@ -13,8 +13,8 @@ use raybatch::{Manifest, Ray, Scene, SceneGeometry};
 
 use crate::util::{Dir, folder};
 
-/// The folder named by `variable`; a missing variable fails the test rather than letting
-/// it pass without looking at anything.
+/// The files under `root`, in every folder below it, whose extension is one of
+/// `extensions` (lower case; the files' may be in any case), sorted.
 fn files_with(root: &Path, extensions: &[&str]) -> Vec<PathBuf> {
     let mut found = Vec::new();
     let mut stack = vec![root.to_path_buf()];
@@ -146,7 +146,7 @@ fn scanned_models_render_as_a_batch_with_shared_loads() {
 
 #[test]
 #[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
-fn the_fast_obj_reader_reads_every_scanned_model_exactly_as_tobj_does() {
+fn scanned_models_read_fast_exactly_as_tobj_reads_them() {
     let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
     assert_most_read_fast_as_tobj_reads_them(&models, 5);
 }

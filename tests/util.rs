@@ -283,7 +283,8 @@ pub fn assert_close(got: f32, expected: f64) {
 }
 
 /// The folder an environment variable names, made absolute (tests write manifests
-/// elsewhere that refer to it).
+/// elsewhere that refer to it). A missing variable fails the test rather than letting it
+/// pass without looking at anything.
 pub fn folder(variable: &str) -> PathBuf {
     let value = std::env::var_os(variable)
         .unwrap_or_else(|| panic!("set {variable} to run this test (see tests/real_models.rs)"));
