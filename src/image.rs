@@ -831,10 +831,26 @@ mod tests {
 
     #[test]
     fn srgb_follows_the_standard_curve() {
-        assert_eq!(encode(0.002, Encoding::Srgb), 12.92 * 0.002);
-        let c: f64 = 0.5;
-        assert_eq!(encode(c, Encoding::Srgb), 1.055 * c.powf(1.0 / 2.4) - 0.055);
-        assert!((encode(1.0, Encoding::Srgb) - 1.0).abs() < 1e-12);
+        // Reference values of the sRGB curve (IEC 61966-2-1), worked out apart from this
+        // code: linear 0.5 is 0.7353570 (the 8-bit mid grey 188 by the contract's
+        // `floor(c · 256)`), 18% grey 0.4613561 (118); 0.0035 lies past the branch point,
+        // where the straight part would give 0.04522.
+        let cases = [
+            (0.5, 0.7353569830524495, 188),
+            (0.18, 0.46135612950044164, 118),
+            (0.0035, 0.04498790711983986, 11),
+            (0.002, 0.02584, 6),
+            (1.0, 1.0, 255),
+            (0.0, 0.0, 0),
+        ];
+        for (c, encoded, byte) in cases {
+            let e = encode(c, Encoding::Srgb);
+            assert!((e - encoded).abs() < 1e-12, "{c}: {e} against {encoded}");
+            assert_eq!(quantize(e), byte, "{c}");
+        }
+        // The branch point belongs to the straight part (`c ≤ 0.0031308`), where the curve
+        // gives 0.04044991 instead.
+        assert_eq!(encode(0.0031308, Encoding::Srgb), 12.92 * 0.0031308);
         assert_eq!(encode(0.3, Encoding::Linear), 0.3);
     }
 
