@@ -117,9 +117,10 @@ mod tests {
         let m = scale_rotate_translate(
             DVec3::new(2.0, 1.0, 1.0),
             Some((DVec3::Z, 90.0)),
-            DVec3::new(0.0, 0.0, 10.0),
+            DVec3::new(5.0, 0.0, 10.0),
         );
-        // (1,0,0) -> scaled (2,0,0) -> rotated (0,2,0) -> translated (0,2,10).
-        assert_eq!(m.transform_point3(DVec3::X), DVec3::new(0.0, 2.0, 10.0));
+        // (1,0,0) -> scaled (2,0,0) -> rotated (0,2,0) -> translated (5,2,10). Translated
+        // off the axis, so that rotating after translating (to (0,7,10)) would show.
+        assert_eq!(m.transform_point3(DVec3::X), DVec3::new(5.0, 2.0, 10.0));
     }
 }

@@ -149,14 +149,15 @@ fn a_matrix_and_the_equivalent_scale_rotate_translate_agree() {
         );
         dir.pfm_of(&format!("{name}.json"), &json, &format!("{name}.pfm"))
     };
-    // scale 2 along x, then a quarter turn about +z (x → y), then translate to z = 6.
+    // scale 2 along x, then a quarter turn about +z (x → y), then translate to
+    // (0.25, 0, 6): off the rotation's axis, so that the order of the three shows.
     let srt = render(
         "srt",
-        r#"{"scale": [2, 1, 1], "rotate": {"axis": [0, 0, 1], "degrees": 90}, "translate": [0, 0, 6]}"#,
+        r#"{"scale": [2, 1, 1], "rotate": {"axis": [0, 0, 1], "degrees": 90}, "translate": [0.25, 0, 6]}"#,
     );
     let matrix = render(
         "m",
-        r#"{"matrix": [0, -1, 0, 0,  2, 0, 0, 0,  0, 0, 1, 6,  0, 0, 0, 1]}"#,
+        r#"{"matrix": [0, -1, 0, 0.25,  2, 0, 0, 0,  0, 0, 1, 6,  0, 0, 0, 1]}"#,
     );
     assert_eq!(srt, matrix);
     // The stretched axis now runs along y: the image is taller than wide.
@@ -164,10 +165,12 @@ fn a_matrix_and_the_equivalent_scale_rotate_translate_agree() {
     let tall = (0..48).filter(|&y| hit(&srt, 24, y)).count();
     let wide = (0..48).filter(|&x| hit(&srt, x, 24)).count();
     assert!(tall * 2 >= wide * 3, "tall {tall}, wide {wide}");
-    // Nearest point on the axis: the sphere's surface at z = 6 − 1 = 5.
+    // On the view axis, 0.25 from the centre along x (where the radius is still 1): the
+    // surface at z = 6 − √(1 − 0.25²).
+    let expected = 6.0 - (1.0f64 - 0.0625).sqrt();
     assert!(
-        (srt.at(24, 24)[0] - 5.0).abs() < 0.05,
-        "{}",
+        (f64::from(srt.at(24, 24)[0]) - expected).abs() < 0.05,
+        "{} against {expected}",
         srt.at(24, 24)[0]
     );
 }
