@@ -80,6 +80,30 @@ fn the_interval_is_strict_at_both_ends() {
 }
 
 #[test]
+fn the_interval_defaults_to_zero_and_infinity() {
+    let dir = Dir::new();
+    // Far beyond any finite bound one might pick: a sphere whose near side is at
+    // t = 1e12 − 1e9, and a triangle at t = 1e12.
+    let far_sphere = depth(
+        &dir,
+        r#""spheres": [{"center": [0, 0, 1e12], "radius": 1e9}]"#,
+    );
+    assert_eq!(far_sphere.at(5, 5)[0], 9.99e11);
+    dir.write(
+        "far.obj",
+        "v -1e12 -1e12 1e12\nv 1e12 -1e12 1e12\nv 0 1e12 1e12\nf 1 2 3\n",
+    );
+    let far_triangle = depth(&dir, r#""meshes": [{"file": "far.obj"}]"#);
+    assert_eq!(far_triangle.at(5, 5)[0], 1e12);
+    // From inside a sphere of radius 1e-6, its far side counts: `tmin` is 0.
+    let near = depth(
+        &dir,
+        r#""spheres": [{"center": [0, 0, 0], "radius": 1e-6}]"#,
+    );
+    assert_eq!(near.at(5, 5)[0], 1e-6);
+}
+
+#[test]
 fn planes_are_hit_from_both_sides_and_the_nearest_primitive_wins() {
     let dir = Dir::new();
     let front = depth(

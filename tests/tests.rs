@@ -7,7 +7,8 @@
 //! - `canonical`: the seed's scene pixel for pixel; P3/P6; thread counts; shipped scenes;
 //!   `raybatch bench`'s report of it, and of each scene's own memory.
 //! - `camera`: the pixel-to-ray mapping of both camera forms.
-//! - `geometry`: hit rules for spheres, planes and triangles; transforms.
+//! - `geometry`: hit rules for spheres, planes and triangles; the strict interval and its
+//!   defaults; transforms.
 //! - `integrators`: what `hit`, `depth` and `normal` write.
 //! - `output`: file formats, encodings, output paths, `--out`, `--stats`.
 //! - `compare`: `raybatch compare` figures, limits and refusals.
