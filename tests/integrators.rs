@@ -134,6 +134,28 @@ fn normals_are_geometric_unit_vectors_never_flipped_toward_the_ray() {
         }
     }
     assert!(checked > 50);
+
+    // From the centre of a sphere every ray meets its inside, where (p − c)/r is the ray's
+    // own direction: pointing away from the camera, not flipped toward it.
+    let json = format!(
+        r#"{{"image": {{"width": {w}, "height": {h}}}, "output": "i.pfm",
+            "integrator": {{"type": "normal"}},
+            "spheres": [{{"center": [0, 0, 0], "radius": 2}}]}}"#
+    );
+    let image = dir.pfm_of("i.json", &json, "i.pfm");
+    for y in 0..h {
+        for x in 0..w {
+            let d = default_camera_direction(x, y, w, h);
+            let got = image.at(x as usize, y as usize);
+            for k in 0..3 {
+                let expected = 0.5 * (d[k] + 1.0);
+                assert!(
+                    (f64::from(got[k]) - expected).abs() < 1e-6,
+                    "inside ({x}, {y})[{k}]"
+                );
+            }
+        }
+    }
 }
 
 /// The `normal` integrator asks for a run's normals at once, and the scene takes
