@@ -3,6 +3,8 @@
 //! external and sparse buffers.
 
 use base64::Engine;
+use raybatch::mesh::MeshCache;
+use raybatch::{Manifest, SceneGeometry};
 use serde_json::{Value, json};
 
 use crate::util::{Dir, Pfm, assert_close};
@@ -192,6 +194,19 @@ fn strips_and_fans_follow_the_gltf_vertex_order() {
         );
         let stats: Value = serde_json::from_slice(&dir.read("s.json")).unwrap();
         assert_eq!(stats["triangles"], triangles, "{name}");
+        // The vertices in the specification's order, which the contract's normals follow
+        // (a rotation of a triangle's corners changes its normal's rounding).
+        let corners: Vec<[usize; 3]> = (0..triangles)
+            .map(|i| match name {
+                "strip" if i % 2 == 1 => [i, i + 2, i + 1],
+                "strip" => [i, i + 1, i + 2],
+                _ => [i + 1, i + 2, 0],
+            })
+            .collect();
+        let manifest = Manifest::load(&dir.join(&format!("{name}.json"))).unwrap();
+        let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
+        let expected: Vec<[[f32; 3]; 3]> = corners.iter().map(|c| c.map(|k| points[k])).collect();
+        assert_eq!(geometry.triangles, expected, "{name}");
     }
 }
 
