@@ -350,5 +350,17 @@ mod tests {
         let d = c.depth.unwrap();
         assert_eq!((d.mask_disagreements, d.both_hit), (1, 2));
         assert!((d.max - 0.25).abs() < 1e-15);
+
+        // A coloured background: a miss equals it in all three channels; a depth of 0.25
+        // (grey) is a hit though it shares the background's first channel, and so is a
+        // depth of 0.5, which shares its last.
+        let background = [0.25, 0.375, 0.5];
+        let a = image(None, vec![background, [0.25; 3], [0.5; 3], background]);
+        let b = image(None, vec![background, [0.25; 3], [0.5; 3], [1.0; 3]]);
+        let d = compare_images(&a, &b, Some(background))
+            .unwrap()
+            .depth
+            .unwrap();
+        assert_eq!((d.samples, d.mask_disagreements, d.both_hit), (4, 1, 2));
     }
 }
