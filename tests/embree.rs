@@ -1,7 +1,7 @@
 //! The Embree reference backend (cargo feature `embree`): verification of every shipped and
-//! stress scene, `render --backend embree`, watertightness cross-checked with Embree, and
-//! the rays the backend must keep from Embree or bound for it (NaN, huge, starting on a
-//! surface).
+//! stress scene, `render --backend embree` (the canonical image, the strict interval, the
+//! contract's normals), watertightness cross-checked with Embree, and the rays the backend
+//! must keep from Embree or bound for it (NaN, huge, starting on a surface).
 
 use std::sync::Arc;
 
@@ -12,7 +12,7 @@ use raybatch::scene::Tracer;
 use raybatch::{Ray, Scene, SceneGeometry, procedural};
 use serde_json::Value;
 
-use crate::util::{Dir, ppm, repo};
+use crate::util::{Dir, pfm, ppm, repo};
 
 #[test]
 fn every_shipped_and_stress_scene_agrees_with_embree() {
@@ -80,6 +80,94 @@ fn the_embree_backend_renders_the_canonical_scene_exactly() {
     assert_eq!(ppm(&dir.read("canonical.ppm")).count([255; 3]), 22_632);
     let stats: Value = serde_json::from_slice(&dir.read("s.json")).unwrap();
     assert_eq!(stats["backend"], "embree");
+}
+
+#[test]
+fn the_embree_backend_keeps_the_strict_interval_and_the_contract_s_normals() {
+    let dir = Dir::new();
+    let render = |name: &str, body: &str| {
+        dir.write(&format!("{name}.json"), body);
+        let run = dir.raybatch(&["render", &format!("{name}.json"), "--backend", "embree"]);
+        assert_eq!(run.status, 0, "{name}: {}", run.stderr);
+        pfm(&dir.read(&format!("{name}.pfm")))
+    };
+    // A triangle at exactly t = 2 on the centre ray: outside the interval at either end.
+    dir.write("tri.obj", "v -1 -1 2\nv 1 -1 2\nv 0 1 2\nf 1 2 3\n");
+    for (name, interval, expected) in [
+        ("at-tmin", r#""tmin": 2"#, 0.0),
+        ("at-tmax", r#""tmax": 2"#, 0.0),
+        ("inside", r#""tmin": 1.999, "tmax": 2.001"#, 2.0),
+    ] {
+        let body = format!(
+            r#"{{"image": {{"width": 11, "height": 11}}, "output": "{name}.pfm",
+                "integrator": {{"type": "depth"}}, {interval},
+                "meshes": [{{"file": "tri.obj"}}]}}"#
+        );
+        assert_eq!(render(name, &body).at(5, 5)[0], expected, "{name}");
+    }
+    // Normals, one primitive at a time, against the contract's formulas in float64: a
+    // sphere's (p − c)/r, a plane's normal normalized, a triangle's cross(v1 − v0, v2 − v0)
+    // in stored order (pointing away from the camera, not flipped toward it).
+    let (w, h) = (24u32, 18u32);
+    const CENTER: DVec3 = DVec3::new(0.3, 0.1, 4.0);
+    const POINT: DVec3 = DVec3::new(0.0, -1.0, 0.0);
+    const NORMAL: DVec3 = DVec3::new(0.0, 3.0, -0.7);
+    type Expected = fn(DVec3) -> Option<DVec3>;
+    let scenes: [(&str, &str, Expected); 3] = [
+        (
+            "sphere",
+            r#""spheres": [{"center": [0.3, 0.1, 4], "radius": 2}]"#,
+            |d| {
+                let b = d.dot(CENTER);
+                let disc = b * b - (CENTER.length_squared() - 4.0);
+                (disc > 1e-6).then(|| (d * (b - disc.sqrt()) - CENTER) / 2.0)
+            },
+        ),
+        (
+            "plane",
+            r#""planes": [{"point": [0, -1, 0], "normal": [0, 3, -0.7]}]"#,
+            |d| {
+                // Rays nearly parallel to the plane are left out.
+                let t = NORMAL.dot(POINT) / NORMAL.dot(d);
+                (t > 1e-3 && t < 1e3).then(|| NORMAL.normalize())
+            },
+        ),
+        (
+            "triangle",
+            r#""meshes": [{"file": "tri.obj", "transform": {"scale": 3}}]"#,
+            |d| {
+                // The scaled triangle at z = 6: (−3, −3), (3, −3), (0, 3).
+                let p = d * (6.0 / d.z);
+                let inside = p.y > -3.0 + 1e-3 && p.y < 3.0 - 2.0 * p.x.abs() - 1e-3;
+                let edges = (DVec3::new(6.0, 0.0, 0.0), DVec3::new(3.0, 6.0, 0.0));
+                inside.then(|| edges.0.cross(edges.1).normalize())
+            },
+        ),
+    ];
+    for (name, primitive, expected) in scenes {
+        let body = format!(
+            r#"{{"image": {{"width": {w}, "height": {h}}}, "output": "{name}.pfm",
+                "integrator": {{"type": "normal"}}, {primitive}}}"#
+        );
+        let image = render(name, &body);
+        let mut checked = 0;
+        for y in 0..h {
+            for x in 0..w {
+                let d = DVec3::from_array(crate::util::default_camera_direction(x, y, w, h));
+                let Some(n) = expected(d) else { continue };
+                let got = image.at(x as usize, y as usize);
+                for k in 0..3 {
+                    let e = 0.5 * (n[k] + 1.0);
+                    assert!(
+                        (f64::from(got[k]) - e).abs() < 1e-5,
+                        "{name} ({x}, {y})[{k}]: {got:?} against {n}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 30, "{name}: {checked} pixels");
+    }
 }
 
 #[test]
