@@ -23,7 +23,7 @@ fn depth_is_the_distance_along_the_unit_ray_divided_by_scale() {
     let (c, r) = ([0.3, -0.2, 3.0], 1.5);
     let json = format!(
         r#"{{"image": {{"width": {w}, "height": {h}}}, "output": "d.pfm",
-            "integrator": {{"type": "depth", "scale": 2.5}}, "background": [0, 0, 0],
+            "integrator": {{"type": "depth", "scale": 2.5}}, "background": [0.25, 0.5, 0.75],
             "spheres": [{{"center": [{}, {}, {}], "radius": {r}}}]}}"#,
         c[0], c[1], c[2]
     );
@@ -46,7 +46,7 @@ fn depth_is_the_distance_along_the_unit_ray_divided_by_scale() {
                     );
                 }
             } else if disc < -1e-9 {
-                assert_eq!(got, [0.0; 3], "({x}, {y})");
+                assert_eq!(got, [0.25, 0.5, 0.75], "({x}, {y}): the background");
             }
         }
     }
@@ -106,17 +106,22 @@ fn normals_are_geometric_unit_vectors_never_flipped_toward_the_ray() {
     let (c, r) = ([0.2, 0.1, 3.0], 1.0);
     let json = format!(
         r#"{{"image": {{"width": {w}, "height": {h}}}, "output": "s.pfm",
-            "integrator": {{"type": "normal"}},
+            "integrator": {{"type": "normal"}}, "background": [0.25, 0.5, 0.75],
             "spheres": [{{"center": [{}, {}, {}], "radius": {r}}}]}}"#,
         c[0], c[1], c[2]
     );
     let image = dir.pfm_of("s.json", &json, "s.pfm");
-    let mut checked = 0;
+    let (mut checked, mut misses) = (0, 0);
     for y in 0..h {
         for x in 0..w {
             let d = default_camera_direction(x, y, w, h);
             let b: f64 = (0..3).map(|k| d[k] * c[k]).sum();
             let disc = b * b - ((0..3).map(|k| c[k] * c[k]).sum::<f64>() - r * r);
+            if disc < -1e-6 {
+                let got = image.at(x as usize, y as usize);
+                assert_eq!(got, [0.25, 0.5, 0.75], "({x}, {y}): the background");
+                misses += 1;
+            }
             if disc < 1e-6 {
                 continue;
             }
@@ -133,7 +138,10 @@ fn normals_are_geometric_unit_vectors_never_flipped_toward_the_ray() {
             checked += 1;
         }
     }
-    assert!(checked > 50);
+    assert!(
+        checked > 50 && misses > 50,
+        "{checked} hits, {misses} misses"
+    );
 
     // From the centre of a sphere every ray meets its inside, where (p − c)/r is the ray's
     // own direction: pointing away from the camera, not flipped toward it.
