@@ -140,3 +140,71 @@ impl Integrator for NormalIntegrator {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plane::Plane;
+    use crate::sphere::Sphere;
+    use crate::{Scene, SceneGeometry};
+
+    /// Every integrator's batch [`Integrator::values`] against its one-ray
+    /// [`Integrator::value`], bit for bit, over runs of camera-like rays that hit a sphere,
+    /// a plane or a triangle, or nothing: then the value is the background.
+    #[test]
+    fn values_are_each_ray_s_value_and_misses_are_the_background() {
+        let scene = Scene::build(&SceneGeometry {
+            spheres: vec![Sphere {
+                center: DVec3::new(-0.8, 0.0, 4.0),
+                radius: 0.7,
+            }],
+            planes: vec![Plane {
+                point: DVec3::new(0.0, -1.0, 0.0),
+                normal: DVec3::new(0.0, 1.0, 0.0),
+            }],
+            triangles: vec![[[0.2, -0.5, 3.0], [1.4, -0.5, 3.0], [0.8, 0.7, 3.5]]],
+            ..SceneGeometry::default()
+        });
+        // Rays fanning out from the origin over a 24 × 24 grid: a few runs, with misses
+        // above the plane's horizon.
+        let rays: Vec<Ray> = (0..24 * 24)
+            .map(|i| Ray {
+                origin: DVec3::ZERO,
+                direction: DVec3::new(
+                    f64::from(i % 24) / 12.0 - 1.0,
+                    f64::from(i / 24) / 12.0 - 1.0,
+                    1.0,
+                )
+                .normalize(),
+                tmin: 0.0,
+                tmax: f64::INFINITY,
+            })
+            .collect();
+        let background = [0.25, 0.5, 0.75];
+        let check = |name: &str, value: &dyn Fn(&Ray) -> Rgb, values: &[Rgb]| {
+            let mut misses = 0;
+            for (ray, batch) in rays.iter().zip(values) {
+                let one = value(ray);
+                assert_eq!(one.map(f64::to_bits), batch.map(f64::to_bits), "{name}");
+                if scene.closest_hit(ray).is_none() {
+                    assert_eq!(one, background, "{name}");
+                    misses += 1;
+                }
+            }
+            assert!(misses > 50 && misses < rays.len() - 50, "{name}: {misses}");
+        };
+        let mut out = vec![[9.0; 3]; rays.len()];
+        let hit = HitIntegrator { background };
+        hit.values(&scene, &rays, &mut out);
+        check("hit", &|r| hit.value(&scene, r), &out);
+        let depth = DepthIntegrator {
+            scale: 2.0,
+            background,
+        };
+        depth.values(&scene, &rays, &mut out);
+        check("depth", &|r| depth.value(&scene, r), &out);
+        let normal = NormalIntegrator { background };
+        normal.values(&scene, &rays, &mut out);
+        check("normal", &|r| normal.value(&scene, r), &out);
+    }
+}
