@@ -12,7 +12,7 @@ use raybatch::scene::Tracer;
 use raybatch::{Ray, Scene, SceneGeometry, procedural};
 use serde_json::Value;
 
-use crate::util::{Dir, pfm, ppm, repo};
+use crate::util::{Dir, assert_normal_colour, pfm, ppm, repo};
 
 #[test]
 fn every_shipped_and_stress_scene_agrees_with_embree() {
@@ -156,13 +156,7 @@ fn the_embree_backend_keeps_the_strict_interval_and_the_contract_s_normals() {
                 let d = DVec3::from_array(crate::util::default_camera_direction(x, y, w, h));
                 let Some(n) = expected(d) else { continue };
                 let got = image.at(x as usize, y as usize);
-                for k in 0..3 {
-                    let e = 0.5 * (n[k] + 1.0);
-                    assert!(
-                        (f64::from(got[k]) - e).abs() < 1e-5,
-                        "{name} ({x}, {y})[{k}]: {got:?} against {n}"
-                    );
-                }
+                assert_normal_colour(got, n.to_array(), 1e-5, &format!("{name} ({x}, {y})"));
                 checked += 1;
             }
         }

@@ -1,6 +1,6 @@
 //! What `hit`, `depth` and `normal` write, against values computed here in float64.
 
-use crate::util::{Dir, default_camera_direction};
+use crate::util::{Dir, assert_normal_colour, default_camera_direction};
 
 #[test]
 fn hit_writes_white_on_hits_and_the_background_elsewhere() {
@@ -126,15 +126,9 @@ fn normals_are_geometric_unit_vectors_never_flipped_toward_the_ray() {
                 continue;
             }
             let t = b - disc.sqrt();
-            let n: Vec<f64> = (0..3).map(|k| (t * d[k] - c[k]) / r).collect();
+            let n = [0, 1, 2].map(|k| (t * d[k] - c[k]) / r);
             let got = image.at(x as usize, y as usize);
-            for k in 0..3 {
-                let expected = 0.5 * (n[k] + 1.0);
-                assert!(
-                    (f64::from(got[k]) - expected).abs() < 1e-6,
-                    "({x}, {y})[{k}]"
-                );
-            }
+            assert_normal_colour(got, n, 1e-6, &format!("({x}, {y})"));
             checked += 1;
         }
     }
@@ -155,13 +149,7 @@ fn normals_are_geometric_unit_vectors_never_flipped_toward_the_ray() {
         for x in 0..w {
             let d = default_camera_direction(x, y, w, h);
             let got = image.at(x as usize, y as usize);
-            for k in 0..3 {
-                let expected = 0.5 * (d[k] + 1.0);
-                assert!(
-                    (f64::from(got[k]) - expected).abs() < 1e-6,
-                    "inside ({x}, {y})[{k}]"
-                );
-            }
+            assert_normal_colour(got, d, 1e-6, &format!("inside ({x}, {y})"));
         }
     }
 }

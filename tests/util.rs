@@ -282,6 +282,18 @@ pub fn assert_close(got: f32, expected: f64) {
     );
 }
 
+/// Asserts that `got`, a pixel of a `normal` render, is the contract's colour
+/// `0.5 · (n + 1)` of the unit normal `n`, each channel within `tolerance`.
+pub fn assert_normal_colour(got: [f32; 3], n: [f64; 3], tolerance: f64, place: &str) {
+    for k in 0..3 {
+        let expected = 0.5 * (n[k] + 1.0);
+        assert!(
+            (f64::from(got[k]) - expected).abs() < tolerance,
+            "{place}: {got:?} is not the colour of the normal {n:?}"
+        );
+    }
+}
+
 /// The folder an environment variable names, made absolute (tests write manifests
 /// elsewhere that refer to it). A missing variable fails the test rather than letting it
 /// pass without looking at anything.
