@@ -116,6 +116,39 @@ fn node_transforms_compose_from_the_root_down() {
 }
 
 #[test]
+fn node_matrices_are_column_major_and_rotations_turn_counter_clockwise() {
+    // glTF 2.0: a node's `matrix` is column-major (the translation in elements 12–14), and
+    // its `rotation` a unit quaternion [x, y, z, w]: a quarter turn about +z takes +x to +y.
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let mut buffer = Buffer::default();
+    let positions = buffer.positions(&TRIANGLE);
+    let document = buffer.document(json!({
+        "meshes": [{"primitives": [{"attributes": {"POSITION": positions}}]}],
+        "nodes": [
+            {"matrix": [1, 0, 0, 0,  0, 1, 0, 0,  0, 0, 1, 0,  0.5, 0, 6, 1], "mesh": 0},
+            {"rotation": [0, 0, h, h], "translation": [0, 0, 9], "mesh": 0}
+        ],
+        "scenes": [{"nodes": [0, 1]}]
+    }));
+    let dir = Dir::new();
+    dir.write("nodes.gltf", document.to_string());
+    dir.write(
+        "nodes.json",
+        r#"{"image": {"width": 1, "height": 1}, "meshes": [{"file": "nodes.gltf"}]}"#,
+    );
+    let manifest = Manifest::load(&dir.join("nodes.json")).unwrap();
+    let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
+    let moved = TRIANGLE.map(|[x, y, z]| [x + 0.5, y, z + 6.0]);
+    let turned = TRIANGLE.map(|[x, y, z]| [-y, x, z + 9.0]);
+    assert_eq!(geometry.triangles.len(), 2);
+    for (got, expected) in geometry.triangles.iter().zip([moved, turned]) {
+        for (g, e) in got.iter().flatten().zip(expected.iter().flatten()) {
+            assert!((g - e).abs() < 1e-6, "{got:?} against {expected:?}");
+        }
+    }
+}
+
+#[test]
 fn the_default_scene_is_read_else_scene_0_else_every_root() {
     let mut buffer = Buffer::default();
     let positions = buffer.positions(&TRIANGLE);
