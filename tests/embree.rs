@@ -12,7 +12,7 @@ use raybatch::scene::Tracer;
 use raybatch::{Ray, Scene, SceneGeometry, procedural};
 use serde_json::Value;
 
-use crate::util::{Dir, assert_normal_colour, pfm, ppm, repo};
+use crate::util::{Dir, assert_normal_colour, default_camera_direction, pfm, ppm, repo};
 
 #[test]
 fn every_shipped_and_stress_scene_agrees_with_embree() {
@@ -153,7 +153,7 @@ fn the_embree_backend_keeps_the_strict_interval_and_the_contract_s_normals() {
         let mut checked = 0;
         for y in 0..h {
             for x in 0..w {
-                let d = DVec3::from_array(crate::util::default_camera_direction(x, y, w, h));
+                let d = DVec3::from_array(default_camera_direction(x, y, w, h));
                 let Some(n) = expected(d) else { continue };
                 let got = image.at(x as usize, y as usize);
                 assert_normal_colour(got, n.to_array(), 1e-5, &format!("{name} ({x}, {y})"));
