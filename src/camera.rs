@@ -275,6 +275,13 @@ impl Camera {
     /// operations in glam's order, none fused, so the same bits as [`Camera::screen_ray`]
     /// and [`Camera::through_lens`]. Each vector is stored straight from the registers
     /// (reading the lanes back from memory stalled every ray on store forwarding).
+    ///
+    /// Through a lens, the work goes in phases over [`RAYS_PER_PHASE`] rays at a time
+    /// (pinhole directions, then lens points, then the rays through them), each a short
+    /// loop whose groups do not depend on each other, so that the processor overlaps
+    /// several: a lens ray is a chain of two square roots and four divisions, and as one
+    /// loop it made a full-HD lens job's render 5% slower (DEVELOPERS.md, "Performance
+    /// notes").
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx")]
     unsafe fn rays_avx(
@@ -285,6 +292,7 @@ impl Camera {
         out: &mut [Ray],
     ) -> usize {
         use std::arch::x86_64::*;
+        const GROUPS: usize = RAYS_PER_PHASE / 4;
         let f = &self.frame;
         let splat = |v: DVec3| v.to_array().map(|c| _mm256_set1_pd(c));
         let (right, up, forward, eye) = (
@@ -312,40 +320,18 @@ impl Camera {
             );
             (lanes, points)
         });
-        let groups = out
-            .chunks_exact_mut(4)
-            .zip(u.chunks_exact(4))
-            .zip(v.chunks_exact(4))
-            .enumerate();
-        for (g, ((rays, u), v)) in groups {
-            // SAFETY: each chunk holds four values.
-            let (u, v) = unsafe { (_mm256_loadu_pd(u.as_ptr()), _mm256_loadu_pd(v.as_ptr())) };
-            let direction =
-                normalize([0, 1, 2].map(|a| add(add(mul(u, right[a]), mul(v, up[a])), forward[a])));
-            let (origin, direction) = match lens {
-                None => (eye, direction),
-                Some(((axis, lens_x, lens_y, radius, focus_distance), points)) => {
-                    let p = &points[4 * g..4 * g + 4];
-                    let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
-                    let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
-                    // SAFETY: AVX is enabled in this function.
-                    let (dx, dy) = unsafe { concentric_disk_avx(a, b) };
-                    let dot = add(
-                        add(mul(direction[0], axis[0]), mul(direction[1], axis[1])),
-                        mul(direction[2], axis[2]),
-                    );
-                    let scale = _mm256_div_pd(focus_distance, dot);
-                    let focus = [0, 1, 2].map(|a| add(eye[a], mul(direction[a], scale)));
-                    let origin = [0, 1, 2].map(|a| {
-                        add(
-                            eye[a],
-                            mul(radius, add(mul(dx, lens_x[a]), mul(dy, lens_y[a]))),
-                        )
-                    });
-                    let toward = [0, 1, 2].map(|a| _mm256_sub_pd(focus[a], origin[a]));
-                    (origin, normalize(toward))
-                }
+        let whole = out.len() - out.len() % 4;
+        let pinhole_direction = |at: usize| {
+            // SAFETY: callers pass `at + 4 <= whole <= u.len() = v.len()`.
+            let (u, v) = unsafe {
+                (
+                    _mm256_loadu_pd(u.as_ptr().add(at)),
+                    _mm256_loadu_pd(v.as_ptr().add(at)),
+                )
             };
+            normalize([0, 1, 2].map(|a| add(add(mul(u, right[a]), mul(v, up[a])), forward[a])))
+        };
+        let store = |rays: &mut [Ray], origin, direction| {
             for ray in rays.iter_mut() {
                 ray.tmin = 0.0;
                 ray.tmax = f64::INFINITY;
@@ -355,10 +341,56 @@ impl Camera {
                 store_lanes(rays, origin, |ray| &mut ray.origin);
                 store_lanes(rays, direction, |ray| &mut ray.direction);
             }
+        };
+        let Some(((axis, lens_x, lens_y, radius, focus_distance), points)) = lens else {
+            // A pinhole ray's chain is short enough for one loop.
+            for (g, rays) in out[..whole].chunks_exact_mut(4).enumerate() {
+                store(rays, eye, pinhole_direction(4 * g));
+            }
+            return whole;
+        };
+        let zero = _mm256_setzero_pd();
+        let mut directions = [[zero; 3]; GROUPS];
+        let mut disk = [(zero, zero); GROUPS];
+        for first in (0..whole).step_by(RAYS_PER_PHASE) {
+            let rays = &mut out[first..whole.min(first + RAYS_PER_PHASE)];
+            let groups = rays.len() / 4;
+            for (g, direction) in directions.iter_mut().enumerate().take(groups) {
+                *direction = pinhole_direction(first + 4 * g);
+            }
+            for (g, disk) in disk.iter_mut().enumerate().take(groups) {
+                let p = &points[first + 4 * g..first + 4 * g + 4];
+                let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
+                let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
+                // SAFETY: AVX is enabled in this function.
+                *disk = unsafe { concentric_disk_avx(a, b) };
+            }
+            for (g, rays) in rays.chunks_exact_mut(4).enumerate() {
+                let (direction, (dx, dy)) = (directions[g], disk[g]);
+                let dot = add(
+                    add(mul(direction[0], axis[0]), mul(direction[1], axis[1])),
+                    mul(direction[2], axis[2]),
+                );
+                let scale = _mm256_div_pd(focus_distance, dot);
+                let focus = [0, 1, 2].map(|a| add(eye[a], mul(direction[a], scale)));
+                let origin = [0, 1, 2].map(|a| {
+                    add(
+                        eye[a],
+                        mul(radius, add(mul(dx, lens_x[a]), mul(dy, lens_y[a]))),
+                    )
+                });
+                let toward = [0, 1, 2].map(|a| _mm256_sub_pd(focus[a], origin[a]));
+                store(rays, origin, normalize(toward));
+            }
         }
-        out.len() - out.len() % 4
+        whole
     }
 }
+
+/// Lens rays [`Camera::rays_at`] takes through each phase of its work before the next:
+/// a renderer's group of pixels.
+#[cfg(target_arch = "x86_64")]
+const RAYS_PER_PHASE: usize = crate::render::GROUP;
 
 /// Stores lane `i` of `x`, `y` and `z` as the vector `field(&mut rays[i])`, for four rays.
 ///
@@ -647,7 +679,8 @@ mod tests {
             };
             for lens in [None, Some(thin_lens)] {
                 let camera = Camera::new(&CameraDesc { frame, lens }, 1920, 1080);
-                for n in 0..=9 {
+                // Every length around the vector width, and around the phases' length.
+                for n in (0..=9).chain([63, 64, 65, 130]) {
                     let u: Vec<f64> = (0..n).map(|_| next() * 2.0).collect();
                     let v: Vec<f64> = (0..n).map(|_| next()).collect();
                     let points: Vec<(f64, f64)> = (0..n)
