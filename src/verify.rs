@@ -1,5 +1,6 @@
 //! `raybatch verify`: every camera ray of a manifest (every pixel, every sample) traced by
-//! raybatch and by the Embree reference, closest hit only, and the distances compared:
+//! raybatch (through the tree a render of the manifest builds) and by the Embree
+//! reference, closest hit only, and the distances compared:
 //! hit-mask agreement, relative depth error, and the two trace times side by side (the rays
 //! sent as the renderer sends them, and made before the clocks start).
 
@@ -25,8 +26,11 @@ pub struct Verification {
     pub triangles: usize,
     pub spheres: usize,
     pub rays: u64,
+    /// The preset of our triangle tree ([`crate::bvh::BuildPreset::name`]), as a render
+    /// of the manifest chooses it; `None` without triangles.
+    pub triangle_tree_preset: Option<&'static str>,
     pub depth: DepthComparison,
-    /// Seconds building each tree.
+    /// Seconds building each tree (ours as a render of the manifest builds it).
     pub build_raybatch_s: f64,
     pub build_embree_s: f64,
     /// Seconds tracing all rays (closest hit), on the current rayon pool.
@@ -41,6 +45,7 @@ impl Verification {
             "triangles": self.triangles,
             "spheres": self.spheres,
             "rays": self.rays,
+            "triangle_tree_preset": self.triangle_tree_preset,
             "depth": self.depth.to_json(),
             "build_raybatch_s": self.build_raybatch_s,
             "build_embree_s": self.build_embree_s,
@@ -78,8 +83,12 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
     let geometry = SceneGeometry::load(&manifest, cache)?;
     let (triangles, spheres) = (geometry.triangles.len(), geometry.spheres.len());
 
+    // The tree a render of the manifest builds: its preset follows the camera rays.
+    let camera_rays = u64::from(manifest.width)
+        * u64::from(manifest.height)
+        * u64::from(View::new(&manifest).spp());
     let start = Instant::now();
-    let ours = Scene::build(&geometry);
+    let ours = Scene::build_for_rays(&geometry, camera_rays);
     let build_raybatch_s = start.elapsed().as_secs_f64();
     let start = Instant::now();
     let reference = EmbreeScene::build(&geometry).map_err(|e| Error::Backend(e.to_string()))?;
@@ -100,6 +109,7 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
         triangles,
         spheres,
         rays: ours_t.len() as u64,
+        triangle_tree_preset: (triangles > 0).then(|| ours.triangle_tree().preset().name()),
         depth,
         build_raybatch_s,
         build_embree_s,

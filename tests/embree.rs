@@ -1,7 +1,8 @@
 //! The Embree reference backend (cargo feature `embree`): verification of every shipped and
 //! stress scene, `render --backend embree` (the canonical image, the strict interval, the
-//! contract's normals), watertightness cross-checked with Embree, and the rays the backend
-//! must keep from Embree or bound for it (NaN, huge, starting on a surface).
+//! contract's normals), watertightness cross-checked with Embree, the rays the backend
+//! must keep from Embree or bound for it (NaN, huge, starting on a surface), and `verify`
+//! tracing the tree a render builds.
 
 use std::sync::Arc;
 
@@ -59,6 +60,42 @@ fn verify_fails_past_its_limits() {
         "{}",
         run.stderr
     );
+}
+
+#[test]
+fn verify_traces_the_tree_a_render_builds() {
+    // The torus's 2,304 triangles: 49,152 camera rays are too few for reinsertion, four
+    // samples a pixel enough (64 rays a triangle). `verify` must check the tree the render
+    // traces, whichever it is.
+    let dir = Dir::new();
+    let torus = repo("models/torus.obj");
+    for (name, spp) in [("few.json", 1), ("many.json", 4)] {
+        dir.write(
+            name,
+            format!(
+                r#"{{"image": {{"width": 256, "height": 192}}, "integrator": {{"type": "depth"}},
+                    "camera": {{"look_from": [0, 3, 4], "look_at": [0, 0, 0], "vfov": 40}},
+                    "sampler": {{"type": "independent", "spp": {spp}}},
+                    "meshes": [{{"file": {:?}}}]}}"#,
+                torus.display().to_string()
+            ),
+        );
+    }
+    let mut presets = Vec::new();
+    for name in ["few.json", "many.json"] {
+        let render = dir.raybatch(&["render", name, "--stats", "stats.jsonl"]);
+        assert_eq!(render.status, 0, "{}", render.stderr);
+        let stats: Value = serde_json::from_slice(&dir.read("stats.jsonl")).unwrap();
+        let verify = dir.raybatch(&["verify", name, "--json"]);
+        assert_eq!(verify.status, 0, "{}\n{}", verify.stdout, verify.stderr);
+        let verified: Value = serde_json::from_str(verify.stdout.trim()).unwrap();
+        assert_eq!(
+            verified["triangle_tree_preset"], stats["triangle_tree_preset"],
+            "{name}"
+        );
+        presets.push(stats["triangle_tree_preset"].clone());
+    }
+    assert_eq!(presets, ["fastest", "very fast"]);
 }
 
 #[test]
