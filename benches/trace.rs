@@ -3,10 +3,13 @@
 //! camera rays (`Scene::closest_hits`) paced, always as packets, always side by side (single
 //! rays traced in turns), and ray by ray, on an
 //! 82k-triangle icosphere and a 10,000-sphere field at a low and a high resolution, and
-//! at the high one through a thin lens; and the whole icosphere in a 16 × 16 view.
+//! at the high one through a thin lens; and the whole icosphere in a 16 × 16 view. The
+//! `camera` group makes a full-HD image's camera rays 64 at a time, through a pinhole and
+//! through a thin lens, tracing nothing.
 //!
 //!     cargo bench --bench trace
 //!     cargo bench --bench trace -- packets
+//!     cargo bench --bench trace -- camera
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use glam::{DMat4, DVec3};
@@ -153,5 +156,65 @@ fn packets(c: &mut Criterion) {
     batch_against_single(c, "packets/spheres-10k-1024-lens", &mut scene, &rays);
 }
 
-criterion_group!(benches, trace, packets);
+/// Camera rays made 64 at a time, as the renderer makes a group's (`Camera::pinhole_rays`,
+/// `Camera::lens_rays`), from a full-HD image's pixel centres and independent lens points
+/// (DEVELOPERS.md, "Lens rays are made in phases").
+fn camera(c: &mut Criterion) {
+    let (width, height) = (1920, 1080);
+    let eye = DVec3::new(0.0, 2.0, 2.5);
+    let frame = look_at_frame(eye, DVec3::ZERO, DVec3::Y, 45.0).unwrap();
+    let thin_lens = ThinLens {
+        radius: 0.05,
+        focus_distance: eye.length(),
+    };
+    let sampler = Sampler::new(&SamplerDesc {
+        kind: SamplerKind::Independent,
+        spp: 1,
+        seed: 1,
+    });
+    let pinhole = Camera::new(&CameraDesc { frame, lens: None }, width, height);
+    let lens = Camera::new(
+        &CameraDesc {
+            frame,
+            lens: Some(thin_lens),
+        },
+        width,
+        height,
+    );
+    let pixels: Vec<(u32, u32)> = (0..height)
+        .flat_map(|y| (0..width).map(move |x| (x, y)))
+        .collect();
+    let u: Vec<f64> = pixels
+        .iter()
+        .map(|&(x, _)| pinhole.screen_u(x, 0.5))
+        .collect();
+    let v: Vec<f64> = pixels
+        .iter()
+        .map(|&(_, y)| pinhole.screen_v(y, 0.5))
+        .collect();
+    let points: Vec<(f64, f64)> = pixels.iter().map(|&(x, y)| sampler.lens(x, y, 0)).collect();
+    let mut out = vec![pinhole.ray(0, 0, 0.5, 0.5, (0.5, 0.5)); 64];
+    let mut group = c.benchmark_group("camera");
+    group.throughput(Throughput::Elements(pixels.len() as u64));
+    group.sample_size(20);
+    group.bench_function("pinhole-rays", |b| {
+        b.iter(|| {
+            for (u, v) in u.chunks(64).zip(v.chunks(64)) {
+                pinhole.pinhole_rays(u, v, &mut out[..u.len()]);
+                std::hint::black_box(&out);
+            }
+        })
+    });
+    group.bench_function("lens-rays", |b| {
+        b.iter(|| {
+            for ((u, v), points) in u.chunks(64).zip(v.chunks(64)).zip(points.chunks(64)) {
+                lens.lens_rays(u, v, points, &mut out[..u.len()]);
+                std::hint::black_box(&out);
+            }
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, trace, packets, camera);
 criterion_main!(benches);
