@@ -349,6 +349,7 @@ impl Camera {
             }
             return whole;
         };
+        let wide_disks = std::is_x86_feature_detected!("avx512f");
         let zero = _mm256_setzero_pd();
         let mut directions = [[zero; 3]; GROUPS];
         let mut disk = [(zero, zero); GROUPS];
@@ -358,12 +359,17 @@ impl Camera {
             for (g, direction) in directions.iter_mut().enumerate().take(groups) {
                 *direction = pinhole_direction(first + 4 * g);
             }
-            for (g, disk) in disk.iter_mut().enumerate().take(groups) {
-                let p = &points[first + 4 * g..first + 4 * g + 4];
-                let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
-                let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
-                // SAFETY: AVX is enabled in this function.
-                *disk = unsafe { concentric_disk_avx(a, b) };
+            let points = &points[first..first + 4 * groups];
+            if wide_disks {
+                // SAFETY: the CPU has AVX-512F.
+                unsafe { concentric_disks_avx512(points, &mut disk[..groups]) };
+            } else {
+                for (p, disk) in points.chunks_exact(4).zip(&mut disk[..groups]) {
+                    let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
+                    let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
+                    // SAFETY: AVX is enabled in this function.
+                    *disk = unsafe { concentric_disk_avx(a, b) };
+                }
             }
             for (g, rays) in rays.chunks_exact_mut(4).enumerate() {
                 let (direction, (dx, dy)) = (directions[g], disk[g]);
@@ -469,6 +475,100 @@ unsafe fn concentric_disk_avx(
             _mm256_blendv_pd(first, zero, centre),
             _mm256_blendv_pd(second, zero, centre),
         )
+    }
+}
+
+/// A lens point `(f64, f64)` is its two numbers in order, nothing between or after them
+/// ([`concentric_disks_avx512`] loads eight points as sixteen numbers). Rust does not
+/// promise a tuple's layout, so it is checked when compiling.
+#[cfg(target_arch = "x86_64")]
+const POINT_LAYOUT: () = assert!(
+    std::mem::size_of::<(f64, f64)>() == 16
+        && std::mem::offset_of!((f64, f64), 0) == 0
+        && std::mem::offset_of!((f64, f64), 1) == 8
+);
+
+/// [`concentric_disk_avx`] of each group of four `points`, into `out` (a group each),
+/// eight points at a time with AVX-512 (the last four alone): the same operations lane
+/// by lane, so the same bits.
+///
+/// # Safety
+/// The CPU must have AVX-512F; `points` must hold four points per entry of `out`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn concentric_disks_avx512(
+    points: &[(f64, f64)],
+    out: &mut [(std::arch::x86_64::__m256d, std::arch::x86_64::__m256d)],
+) {
+    use std::arch::x86_64::*;
+    assert_eq!(points.len(), 4 * out.len());
+    let () = POINT_LAYOUT;
+    let f = &INVERSE_FACTORIAL;
+    let (one, two, zero) = (
+        _mm512_set1_pd(1.0),
+        _mm512_set1_pd(2.0),
+        _mm512_setzero_pd(),
+    );
+    // Lane i of a point pair's two registers: its first (even) or second (odd) number.
+    let (even, odd) = (
+        _mm512_setr_epi64(0, 2, 4, 6, 8, 10, 12, 14),
+        _mm512_setr_epi64(1, 3, 5, 7, 9, 11, 13, 15),
+    );
+    let mut pairs = out.chunks_exact_mut(2);
+    for (p, out) in points.chunks_exact(8).zip(&mut pairs) {
+        // SAFETY: eight points are sixteen contiguous f64s, each point's first number
+        // first (`POINT_LAYOUT`); AVX-512F is enabled here.
+        let (a, b) = unsafe {
+            let numbers = p.as_ptr().cast::<f64>();
+            let (low, high) = (_mm512_loadu_pd(numbers), _mm512_loadu_pd(numbers.add(8)));
+            (
+                _mm512_permutex2var_pd(low, even, high),
+                _mm512_permutex2var_pd(low, odd, high),
+            )
+        };
+        let x = _mm512_sub_pd(_mm512_mul_pd(two, a), one);
+        let y = _mm512_sub_pd(_mm512_mul_pd(two, b), one);
+        let wide = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(_mm512_abs_pd(x), _mm512_abs_pd(y));
+        let (r, other) = (
+            _mm512_mask_blend_pd(wide, y, x),
+            _mm512_mask_blend_pd(wide, x, y),
+        );
+        let phi = _mm512_mul_pd(
+            _mm512_set1_pd(std::f64::consts::FRAC_PI_4),
+            _mm512_div_pd(other, r),
+        );
+        let p2 = _mm512_mul_pd(phi, phi);
+        let mut sin = _mm512_set1_pd(-f[15]);
+        let mut cos = _mm512_set1_pd(f[16]);
+        for k in (0..7).rev() {
+            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+            sin = _mm512_add_pd(_mm512_set1_pd(sign * f[2 * k + 1]), _mm512_mul_pd(p2, sin));
+            cos = _mm512_add_pd(_mm512_set1_pd(-sign * f[2 * k + 2]), _mm512_mul_pd(p2, cos));
+        }
+        let (sin, cos) = (
+            _mm512_mul_pd(phi, sin),
+            _mm512_add_pd(one, _mm512_mul_pd(p2, cos)),
+        );
+        let first = _mm512_mul_pd(r, _mm512_mask_blend_pd(wide, sin, cos));
+        let second = _mm512_mul_pd(r, _mm512_mask_blend_pd(wide, cos, sin));
+        // The centre: x = y = 0 (where 0/0 made φ NaN).
+        let centre =
+            _mm512_cmp_pd_mask::<_CMP_EQ_OQ>(x, zero) & _mm512_cmp_pd_mask::<_CMP_EQ_OQ>(y, zero);
+        let (dx, dy) = (
+            _mm512_mask_blend_pd(centre, first, zero),
+            _mm512_mask_blend_pd(centre, second, zero),
+        );
+        let halves = |v| (_mm512_castpd512_pd256(v), _mm512_extractf64x4_pd::<1>(v));
+        let ((dx0, dx1), (dy0, dy1)) = (halves(dx), halves(dy));
+        out[0] = (dx0, dy0);
+        out[1] = (dx1, dy1);
+    }
+    if let [last] = pairs.into_remainder() {
+        let p = &points[points.len() - 4..];
+        let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
+        let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
+        // SAFETY: AVX-512F implies AVX.
+        *last = unsafe { concentric_disk_avx(a, b) };
     }
 }
 
