@@ -503,7 +503,6 @@ unsafe fn concentric_disks_avx512(
     use std::arch::x86_64::*;
     assert_eq!(points.len(), 4 * out.len());
     let () = POINT_LAYOUT;
-    let f = &INVERSE_FACTORIAL;
     let (one, two, zero) = (
         _mm512_set1_pd(1.0),
         _mm512_set1_pd(2.0),
@@ -537,18 +536,7 @@ unsafe fn concentric_disks_avx512(
             _mm512_set1_pd(std::f64::consts::FRAC_PI_4),
             _mm512_div_pd(other, r),
         );
-        let p2 = _mm512_mul_pd(phi, phi);
-        let mut sin = _mm512_set1_pd(-f[15]);
-        let mut cos = _mm512_set1_pd(f[16]);
-        for k in (0..7).rev() {
-            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
-            sin = _mm512_add_pd(_mm512_set1_pd(sign * f[2 * k + 1]), _mm512_mul_pd(p2, sin));
-            cos = _mm512_add_pd(_mm512_set1_pd(-sign * f[2 * k + 2]), _mm512_mul_pd(p2, cos));
-        }
-        let (sin, cos) = (
-            _mm512_mul_pd(phi, sin),
-            _mm512_add_pd(one, _mm512_mul_pd(p2, cos)),
-        );
+        let (sin, cos) = sin_cos_quarter_lanes!(phi, _mm512_mul_pd, _mm512_add_pd, _mm512_set1_pd);
         let first = _mm512_mul_pd(r, _mm512_mask_blend_pd(wide, sin, cos));
         let second = _mm512_mul_pd(r, _mm512_mask_blend_pd(wide, cos, sin));
         // The centre: x = y = 0 (where 0/0 made φ NaN).
@@ -572,6 +560,28 @@ unsafe fn concentric_disks_avx512(
     }
 }
 
+/// [`sin_cos_quarter`] in the lanes that `$mul`, `$add` and `$splat` (intrinsics of one
+/// width) work on: [`sin_cos_quarter`]'s operations in its order, so that the scalar and
+/// vector paths give the same bits. Expanded where the width's features are enabled.
+#[cfg(target_arch = "x86_64")]
+macro_rules! sin_cos_quarter_lanes {
+    ($phi:expr, $mul:ident, $add:ident, $splat:ident) => {{
+        let f = &INVERSE_FACTORIAL;
+        let phi = $phi;
+        let p2 = $mul(phi, phi);
+        let mut sin = $splat(-f[15]);
+        let mut cos = $splat(f[16]);
+        for k in (0..7).rev() {
+            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+            sin = $add($splat(sign * f[2 * k + 1]), $mul(p2, sin));
+            cos = $add($splat(-sign * f[2 * k + 2]), $mul(p2, cos));
+        }
+        ($mul(phi, sin), $add($splat(1.0), $mul(p2, cos)))
+    }};
+}
+#[cfg(target_arch = "x86_64")]
+use sin_cos_quarter_lanes;
+
 /// [`sin_cos_quarter`] of four angles, with the same operations.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
@@ -579,23 +589,9 @@ fn sin_cos_quarter_avx(
     phi: std::arch::x86_64::__m256d,
 ) -> (std::arch::x86_64::__m256d, std::arch::x86_64::__m256d) {
     use std::arch::x86_64::*;
-    let f = &INVERSE_FACTORIAL;
     // SAFETY (every intrinsic below): only called from functions with AVX enabled, into
     // which it is inlined.
-    unsafe {
-        let p2 = _mm256_mul_pd(phi, phi);
-        let mut sin = _mm256_set1_pd(-f[15]);
-        let mut cos = _mm256_set1_pd(f[16]);
-        for k in (0..7).rev() {
-            let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
-            sin = _mm256_add_pd(_mm256_set1_pd(sign * f[2 * k + 1]), _mm256_mul_pd(p2, sin));
-            cos = _mm256_add_pd(_mm256_set1_pd(-sign * f[2 * k + 2]), _mm256_mul_pd(p2, cos));
-        }
-        (
-            _mm256_mul_pd(phi, sin),
-            _mm256_add_pd(_mm256_set1_pd(1.0), _mm256_mul_pd(p2, cos)),
-        )
-    }
+    unsafe { sin_cos_quarter_lanes!(phi, _mm256_mul_pd, _mm256_add_pd, _mm256_set1_pd) }
 }
 
 /// Shirley and Chiu's area-preserving map from the unit square to the unit disk. Its
