@@ -78,6 +78,36 @@ pub struct Camera {
     width: f64,
     height: f64,
     lens: Option<Lens>,
+    /// The vector instructions its group loops use, chosen once for this CPU.
+    lanes: Lanes,
+}
+
+/// The widest vector instructions the camera's group loops ([`Camera::screen_coordinates`],
+/// [`Camera::pinhole_rays`], [`Camera::lens_rays`]) run on this CPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+enum Lanes {
+    Plain,
+    /// Four float64 lanes.
+    Avx,
+    /// Four, and eight for the lens points.
+    Avx512,
+}
+
+impl Lanes {
+    fn for_this_cpu() -> Lanes {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::is_x86_feature_detected!("avx") {
+                return if std::is_x86_feature_detected!("avx512f") {
+                    Lanes::Avx512
+                } else {
+                    Lanes::Avx
+                };
+            }
+        }
+        Lanes::Plain
+    }
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -115,6 +145,7 @@ impl Camera {
             width: f64::from(width),
             height: f64::from(height),
             lens,
+            lanes: Lanes::for_this_cpu(),
         }
     }
 
@@ -151,7 +182,7 @@ impl Camera {
     pub fn screen_coordinates(&self, pixels: &[(u32, u32)], y0: u32, u: &mut [f64], v: &mut [f64]) {
         assert!(u.len() == pixels.len() && v.len() == pixels.len());
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx") {
+        if self.lanes != Lanes::Plain {
             // SAFETY: the CPU has AVX.
             unsafe { self.screen_coordinates_avx(pixels, y0, u, v) };
             return;
@@ -253,7 +284,7 @@ impl Camera {
     fn rays_at(&self, u: &[f64], v: &[f64], lens: &[(f64, f64)], out: &mut [Ray]) {
         assert!(u.len() == out.len() && v.len() == out.len());
         #[cfg(target_arch = "x86_64")]
-        let done = if std::is_x86_feature_detected!("avx") {
+        let done = if self.lanes != Lanes::Plain {
             let lens = self.lens.as_ref().map(|l| (l, lens));
             // SAFETY: the CPU has AVX.
             unsafe { self.rays_avx(u, v, lens, out) }
@@ -349,7 +380,6 @@ impl Camera {
             }
             return whole;
         };
-        let wide_disks = std::is_x86_feature_detected!("avx512f");
         let zero = _mm256_setzero_pd();
         let mut directions = [[zero; 3]; GROUPS];
         let mut disk = [(zero, zero); GROUPS];
@@ -360,7 +390,7 @@ impl Camera {
                 *direction = pinhole_direction(first + 4 * g);
             }
             let points = &points[first..first + 4 * groups];
-            if wide_disks {
+            if self.lanes == Lanes::Avx512 {
                 // SAFETY: the CPU has AVX-512F.
                 unsafe { concentric_disks_avx512(points, &mut disk[..groups]) };
             } else {
