@@ -16,7 +16,9 @@ pub enum ManifestError {
     Json {
         line: usize,
         column: usize,
-        /// The key path where parsing stopped, when there is one.
+        /// The key path where parsing stopped, such as `spheres[2].radius`, when there is
+        /// one: the last key read in full when the text ends or breaks where a key should
+        /// be.
         key: Option<String>,
         message: String,
     },

@@ -253,10 +253,31 @@ impl Manifest {
 fn json_failure(text: &[u8], error: serde_json::Error) -> ManifestError {
     let mut deserializer = serde_json::Deserializer::from_slice(text);
     match serde_path_to_error::deserialize::<_, raw::Object<raw::Manifest>>(&mut deserializer) {
-        Err(tracked) => json_error(tracked.path().to_string(), tracked.into_inner()),
+        Err(tracked) => json_error(known_keys(tracked.path()), tracked.into_inner()),
         // After the value: trailing text, which has no key.
         Ok(_) => json_error(String::new(), deserializer.end().err().unwrap_or(error)),
     }
+}
+
+/// The keys of `path` up to the first that serde could not name, as `spheres[2].radius`;
+/// empty for none. A manifest that ends, or breaks, where a key should be leaves an
+/// unnamed last key, which serde_path_to_error prints as `?` (`image.?`).
+fn known_keys(path: &serde_path_to_error::Path) -> String {
+    use serde_path_to_error::Segment;
+    let mut keys = String::new();
+    for segment in path.iter() {
+        match segment {
+            Segment::Unknown => break,
+            Segment::Seq { index } => keys.push_str(&format!("[{index}]")),
+            Segment::Map { key } | Segment::Enum { variant: key } => {
+                if !keys.is_empty() {
+                    keys.push('.');
+                }
+                keys.push_str(key);
+            }
+        }
+    }
+    keys
 }
 
 fn json_error(key: String, error: serde_json::Error) -> ManifestError {

@@ -16,6 +16,17 @@ fn bad_manifests() -> Vec<(&'static str, String, Vec<&'static str>)> {
             vec!["line 1, column", "trailing comma"],
         ),
         ("empty.json", String::new(), vec!["line 1, column 0", "EOF"]),
+        // Cut off where a key should come: the place is the last key that was read.
+        (
+            "cut-off.json",
+            r#"{"image": {"width": 4,"#.to_string(),
+            vec!["line 1, column", ": image: EOF"],
+        ),
+        (
+            "cut-off-sphere.json",
+            format!(r#"{{{IMAGE}, "spheres": [{{"center": [0, 0, 3], "#),
+            vec![": spheres[0]: EOF"],
+        ),
         (
             "trailing-text.json",
             format!("{{{IMAGE}}} {{}}"),
