@@ -297,7 +297,7 @@ fn json_error(key: String, error: serde_json::Error) -> ManifestError {
     ManifestError::Json {
         line: error.line(),
         column: error.column(),
-        key: (!key.is_empty() && key != ".").then_some(key),
+        key: (!key.is_empty()).then_some(key),
         message: message.to_string(),
     }
 }
