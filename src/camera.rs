@@ -395,10 +395,8 @@ impl Camera {
                 unsafe { concentric_disks_avx512(points, &mut disk[..groups]) };
             } else {
                 for (p, disk) in points.chunks_exact(4).zip(&mut disk[..groups]) {
-                    let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
-                    let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
                     // SAFETY: AVX is enabled in this function.
-                    *disk = unsafe { concentric_disk_avx(a, b) };
+                    *disk = unsafe { concentric_disk_avx(p) };
                 }
             }
             for (g, rays) in rays.chunks_exact_mut(4).enumerate() {
@@ -466,19 +464,20 @@ unsafe fn store_lanes(
     }
 }
 
-/// [`concentric_disk`] of four points, lane by lane, with the same operations.
+/// [`concentric_disk`] of the four points `p`, lane by lane, with the same operations.
 ///
 /// # Safety
 /// Only from a function with AVX enabled.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 unsafe fn concentric_disk_avx(
-    a: std::arch::x86_64::__m256d,
-    b: std::arch::x86_64::__m256d,
+    p: &[(f64, f64)],
 ) -> (std::arch::x86_64::__m256d, std::arch::x86_64::__m256d) {
     use std::arch::x86_64::*;
     // SAFETY: AVX is enabled in the caller.
     unsafe {
+        let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
+        let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
         let (one, two) = (_mm256_set1_pd(1.0), _mm256_set1_pd(2.0));
         let x = _mm256_sub_pd(_mm256_mul_pd(two, a), one);
         let y = _mm256_sub_pd(_mm256_mul_pd(two, b), one);
@@ -582,11 +581,8 @@ unsafe fn concentric_disks_avx512(
         out[1] = (dx1, dy1);
     }
     if let [last] = pairs.into_remainder() {
-        let p = &points[points.len() - 4..];
-        let a = _mm256_setr_pd(p[0].0, p[1].0, p[2].0, p[3].0);
-        let b = _mm256_setr_pd(p[0].1, p[1].1, p[2].1, p[3].1);
         // SAFETY: AVX-512F implies AVX.
-        *last = unsafe { concentric_disk_avx(a, b) };
+        *last = unsafe { concentric_disk_avx(&points[points.len() - 4..]) };
     }
 }
 
