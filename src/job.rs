@@ -180,6 +180,7 @@ impl Batch {
     fn build_scene(
         &mut self,
         geometry: &SceneGeometry,
+        camera_rays: u64,
         reused: Option<Arc<TriangleTree>>,
         report: &mut JobReport,
     ) -> Scene {
@@ -197,7 +198,7 @@ impl Batch {
         }
         // Drop the old tree before building the new one, so two are never held at once.
         self.last_tree = None;
-        let scene = Scene::build_for_rays(geometry, report.camera_rays().unwrap_or(0));
+        let scene = Scene::build_for_rays(geometry, camera_rays);
         report.triangle_tree_preset = Some(scene.triangle_tree().preset().name());
         self.tree_builds += 1;
         // Kept for the next job only while its meshes are (not after the last job).
@@ -284,7 +285,7 @@ impl Batch {
         report.load_s = start.elapsed().as_secs_f64();
         match self.options.backend {
             Backend::Raybatch => finish(
-                |g, report| Ok(self.build_scene(g, reused, report)),
+                |g, report| Ok(self.build_scene(g, manifest.camera_rays(), reused, report)),
                 geometry,
                 &manifest,
                 &output,

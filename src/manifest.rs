@@ -227,6 +227,11 @@ pub enum Light {
 }
 
 impl Manifest {
+    /// The camera rays a render of the manifest traces: every sample of every pixel.
+    pub fn camera_rays(&self) -> u64 {
+        u64::from(self.width) * u64::from(self.height) * u64::from(self.sampler.spp)
+    }
+
     /// Reads and checks the manifest at `path`.
     pub fn load(path: &Path) -> Result<Manifest> {
         let text = std::fs::read(path).map_err(ManifestError::Read)?;

@@ -84,16 +84,14 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
     let (triangles, spheres) = (geometry.triangles.len(), geometry.spheres.len());
 
     // The tree a render of the manifest builds: its preset follows the camera rays.
-    let view = View::new(&manifest);
-    let camera_rays =
-        u64::from(manifest.width) * u64::from(manifest.height) * u64::from(view.spp());
     let start = Instant::now();
-    let ours = Scene::build_for_rays(&geometry, camera_rays);
+    let ours = Scene::build_for_rays(&geometry, manifest.camera_rays());
     let build_raybatch_s = start.elapsed().as_secs_f64();
     let start = Instant::now();
     let reference = EmbreeScene::build(&geometry).map_err(|e| Error::Backend(e.to_string()))?;
     let build_embree_s = start.elapsed().as_secs_f64();
 
+    let view = View::new(&manifest);
     let (ours_t, reference_t, trace_raybatch_s, trace_embree_s) =
         trace_both(&ours, &reference, &view, &manifest);
     let as_option = |t: f64| (!t.is_nan()).then_some(t);
