@@ -1041,11 +1041,11 @@ impl BenchReport {
         let with_embree = self.scenes.iter().any(|s| s.embree.is_some());
         let _ = writeln!(
             out,
-            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring camera rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
+            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring camera rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `rays that hit`: the share of the scene's camera rays with a closest hit; a miss costs any hit as much as closest hit, so where few rays hit, `any 1 / closest 1` stays near 1. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
         );
         let _ = writeln!(
             out,
-            "| scene | primitives | threads | closest 1 | closest 64 | any 1 | any 1 no hint | any 64 | any 1 / closest 1 |{} compute loop / 1 thread |",
+            "| scene | primitives | rays that hit | threads | closest 1 | closest 64 | any 1 | any 1 no hint | any 64 | any 1 / closest 1 |{} compute loop / 1 thread |",
             if with_embree {
                 " Embree closest 1 | Embree closest 64 | Embree any 1 | Embree any 64 | closest 1 / Embree 1 | closest 64 / Embree 1 | closest 64 / Embree 64 |"
             } else {
@@ -1054,7 +1054,7 @@ impl BenchReport {
         );
         let _ = writeln!(
             out,
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|{}---:|",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|{}---:|",
             if with_embree {
                 "---:|---:|---:|---:|---:|---:|---:|"
             } else {
@@ -1070,9 +1070,10 @@ impl BenchReport {
             for (i, t) in s.raybatch.throughput.iter().enumerate() {
                 let _ = write!(
                     out,
-                    "| {} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x |",
+                    "| {} | {} | {:.1}% | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x |",
                     s.name,
                     primitives,
+                    100.0 * s.hits as f64 / s.rays.max(1) as f64,
                     t.threads,
                     t.closest,
                     t.closest_batch,

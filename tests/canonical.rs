@@ -188,19 +188,32 @@ fn bench_memory_figures_are_each_scene_s_own() {
     );
 }
 
+/// The bench's table gives the share of rays that hit, which bounds what any hit can gain:
+/// for the canonical scene 22,632 of 640 × 480 rays, 7.4%.
+#[test]
+fn bench_table_shows_the_share_of_rays_that_hit() {
+    let table = quick_bench_output(&["--only", "canonical", "--threads", "1"]);
+    assert!(
+        table.contains("| scene | primitives | rays that hit | threads | closest 1 |"),
+        "{table}"
+    );
+    assert!(
+        table.contains("\n| canonical | 1 spheres | 7.4% | 1 | "),
+        "{table}"
+    );
+}
+
 /// The JSON report of `raybatch bench --quick --only ONLY --threads THREADS`, which must
 /// succeed.
 fn quick_bench(only: &str, threads: &str) -> serde_json::Value {
+    let output = quick_bench_output(&["--only", only, "--threads", threads, "--json"]);
+    serde_json::from_str(&output).expect("JSON on stdout")
+}
+
+/// The standard output of `raybatch bench --quick ARGS...`, which must succeed.
+fn quick_bench_output(args: &[&str]) -> String {
     let dir = Dir::new();
-    let run = dir.raybatch(&[
-        "bench",
-        "--quick",
-        "--only",
-        only,
-        "--threads",
-        threads,
-        "--json",
-    ]);
+    let run = dir.raybatch(&[&["bench", "--quick"], args].concat());
     assert_eq!(run.status, 0, "{}", run.stderr);
-    serde_json::from_str(&run.stdout).expect("JSON on stdout")
+    run.stdout
 }
