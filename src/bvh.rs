@@ -408,12 +408,20 @@ impl<T: Scalar> Bvh<T> {
             };
             return (empty, Vec::new());
         }
-        let mut bvh2 = ploc(count, box_of, &params);
+        let mut bvh2 = ploc(count, &box_of, &params);
         obvhs::bvh2::reinsertion::ReinsertionOptimizer::default().run(
             &mut bvh2,
             params.reinsertion_batch_ratio,
             None,
         );
+        let built = Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost, &leaf_items);
+        if built.0.stack_bound <= KERNEL_STACK {
+            return built;
+        }
+        // A chain from PLOC's passes (many equal boxes): balanced instead, so that the
+        // vector kernels take it and no ray walks the chain.
+        drop(built);
+        let bvh2 = median_split(count, &box_of);
         Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost, leaf_items)
     }
 
@@ -786,6 +794,54 @@ fn ploc(count: usize, box_of: impl Fn(usize) -> Aabb + Sync, params: &BvhBuildPa
         PlocSearchDistance::High => build_with_distance!(24),
         PlocSearchDistance::VeryHigh => build_with_distance!(32),
     }
+    bvh2
+}
+
+/// The stack entries the vector traversals hold (`simd::STACK`): 36 levels of wide nodes.
+/// [`Bvh::build_from`] builds a tree that would need more again, by median splits.
+pub const KERNEL_STACK: usize = 256;
+
+/// A balanced binary tree over `count` (> 0) primitives, primitive `i` having the box
+/// `box_of(i)`: each node's primitives split in half at the median of their boxes'
+/// centres along the axis where those centres spread most, one primitive per leaf, each
+/// node's box the exact union of its primitives'. Its depth is `ceil(log2(count))`
+/// whatever the boxes, where PLOC's passes with search radius 1 merge one pair each
+/// when every neighbour's merged box costs the same (copies of one triangle: a chain, in
+/// quadratic time; DEVELOPERS.md, "A tree too deep for the kernels is built again").
+/// Poorer than PLOC's on ordinary meshes, so only the fallback.
+fn median_split(count: usize, box_of: impl Fn(usize) -> Aabb) -> Bvh2 {
+    use obvhs::bvh2::node::Bvh2Node;
+    let boxes: Vec<Aabb> = (0..count).map(box_of).collect();
+    let mut order: Vec<u32> = (0..count as u32).collect();
+    let mut nodes = vec![Bvh2Node::default(); 2 * count - 1];
+    let mut next_pair = 1;
+    let mut work = vec![(0, 0, count)];
+    while let Some((node, start, end)) = work.pop() {
+        let part = &mut order[start..end];
+        let bounds = part
+            .iter()
+            .fold(Aabb::empty(), |all, &p| all.union(&boxes[p as usize]));
+        if part.len() == 1 {
+            nodes[node] = Bvh2Node::new(bounds, 1, start as u32);
+            continue;
+        }
+        let centre = |p: u32| boxes[p as usize].center();
+        let spread = part.iter().fold(Aabb::empty(), |mut all, &p| {
+            all.extend(centre(p));
+            all
+        });
+        let axis = spread.diagonal().max_position();
+        let half = part.len() / 2;
+        part.select_nth_unstable_by(half, |&a, &b| centre(a)[axis].total_cmp(&centre(b)[axis]));
+        nodes[node] = Bvh2Node::new(bounds, 0, next_pair as u32);
+        work.push((next_pair + 1, start + half, end));
+        work.push((next_pair, start, start + half));
+        next_pair += 2;
+    }
+    let mut bvh2 = Bvh2::zeroed(0);
+    bvh2.nodes = nodes;
+    bvh2.primitive_indices = order;
+    bvh2.children_are_ordered_after_parents = true;
     bvh2
 }
 
@@ -1178,6 +1234,39 @@ mod tests {
                         })
                     });
                     assert_eq!(bvh.bounds(), all, "{preset:?}");
+                    assert!(
+                        seen.iter().all(|&s| s),
+                        "{preset:?}: a primitive is missing"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn many_equal_boxes_give_a_balanced_tree_the_kernels_can_take() {
+        // Copies of one box, alone and among scattered ones: PLOC's radius-1 passes merge
+        // one pair of equal neighbours each and chain them, hundreds of levels deep; the
+        // tree must come out within the kernels' stack, with exact slot boxes.
+        let copy = Aabb::new(glam::Vec3A::ZERO, glam::Vec3A::new(1.0, 1.0, 0.0));
+        let mut mixed = scattered_boxes(3000);
+        mixed.extend(std::iter::repeat_n(copy, 3000));
+        for boxes in [vec![copy; 3000], mixed] {
+            for preset in BuildPreset::ALL {
+                for (max_leaf, cost) in [(1, LeafCost::ONE_BY_ONE), (16, LeafCost::TRIANGLE_BLOCKS)]
+                {
+                    let (bvh, order): (Bvh<f32>, _) =
+                        Bvh::build(&boxes, preset.params(max_leaf), cost, |first, count| {
+                            (first, count)
+                        });
+                    assert!(
+                        bvh.stack_bound() <= KERNEL_STACK,
+                        "{preset:?}: depth {}",
+                        bvh.depth()
+                    );
+                    assert!(bvh.depth() <= 13, "{preset:?}: depth {}", bvh.depth());
+                    let mut seen = vec![false; boxes.len()];
+                    checked_union(&bvh, 0, &order, &boxes, &mut seen);
                     assert!(
                         seen.iter().all(|&s| s),
                         "{preset:?}: a primitive is missing"

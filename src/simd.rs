@@ -18,7 +18,7 @@ use crate::scene::TriangleRay;
 use crate::triangle::{BLOCK, Nearest, TriangleBlock, TriangleHit, edge_functions_f64};
 
 /// Stack entries of the AVX2 traversals; trees that may need more use the scalar path.
-pub const STACK: usize = 256;
+pub const STACK: usize = crate::bvh::KERNEL_STACK;
 
 /// Whether this CPU can run the kernels.
 pub fn available() -> bool {

@@ -201,6 +201,15 @@ fn soup(numbers: &mut Numbers, count: usize) -> (Vec<[[f32; 3]; 3]>, Vec<Ray>) {
     (triangles, rays)
 }
 
+/// A scene of `triangles` alone, its tree built with `preset`.
+fn triangle_scene(triangles: &[[[f32; 3]; 3]], preset: BuildPreset) -> Scene {
+    let geometry = SceneGeometry {
+        triangles: triangles.to_vec(),
+        ..SceneGeometry::default()
+    };
+    Scene::build_with(&geometry, preset)
+}
+
 /// The nearest hit by testing every triangle with the same watertight test.
 fn brute_force(triangles: &[[[f32; 3]; 3]], r: &Ray) -> Option<f32> {
     let sheared = ShearedRay::new(r.origin.as_vec3(), r.direction.as_vec3());
@@ -226,14 +235,53 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
         "the rays must hit often"
     );
     for preset in BuildPreset::ALL {
-        let scene = Scene::build_with(
-            &SceneGeometry {
-                triangles: triangles.clone(),
-                ..SceneGeometry::default()
-            },
-            preset,
+        let scene = triangle_scene(&triangles, preset);
+        assert_single_rays_find(&scene, &rays, &truth, &format!("{preset:?}"));
+    }
+}
+
+/// Thousands of copies of one triangle, among other triangles: PLOC chains them, and the
+/// tree built again instead must stay within the vector kernels' stack and find what
+/// brute force finds, ray by ray and in batches.
+#[test]
+fn copies_of_one_triangle_are_found_as_brute_force_finds_them() {
+    let mut numbers = Numbers(11);
+    let (mut triangles, mut rays) = soup(&mut numbers, 300);
+    let copy = [[-6.0, -6.0, 1.0], [6.0, -4.0, -2.0], [0.0, 7.0, 3.0]];
+    // Rays aimed at points of the copies (and a little past their edges).
+    for _ in 0..1000 {
+        let (u, v) = (numbers.range(-0.1, 1.0), numbers.range(-0.1, 1.0));
+        let [a, b, c] = copy.map(point);
+        let target = a + (b - a) * u + (c - a) * v * (1.0 - u);
+        rays.push(ray(numbers.vector(14.0), target));
+    }
+    triangles.extend(std::iter::repeat_n(copy, 3000));
+    let truth: Vec<Option<f32>> = rays.iter().map(|r| brute_force(&triangles, r)).collect();
+    let on_copy = rays
+        .iter()
+        .zip(&truth)
+        .filter(|(r, t)| t.is_some() && brute_force(&[copy], r) == **t)
+        .count();
+    assert!(on_copy > 200, "the copies must be hit often: {on_copy}");
+    for preset in BuildPreset::ALL {
+        let scene = triangle_scene(&triangles, preset);
+        let bvh = scene.triangle_tree().bvh();
+        assert!(
+            bvh.stack_bound() <= raybatch::bvh::KERNEL_STACK,
+            "{preset:?}: depth {}",
+            bvh.depth()
         );
         assert_single_rays_find(&scene, &rays, &truth, &format!("{preset:?}"));
+        let (closest, any) = batch_queries(&scene, &rays);
+        for ((r, expected), (got, got_any)) in rays.iter().zip(&truth).zip(closest.iter().zip(&any))
+        {
+            assert_eq!(
+                got.map(|h| h.t as f32),
+                *expected,
+                "{preset:?} batch: {r:?}"
+            );
+            assert_eq!(*got_any, expected.is_some(), "{preset:?} batch any: {r:?}");
+        }
     }
 }
 
