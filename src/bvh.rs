@@ -373,8 +373,10 @@ impl<T: Scalar> Bvh<T> {
     /// primitive per leaf) and, where `params` asks for it, its reinsertion optimizer
     /// shape a binary tree, which is collapsed into 8-wide nodes with leaves of at most
     /// `params.max_prims_per_leaf` primitives, each leaf costing `leaf_cost`
-    /// ([`crate::collapse`]). Each slot's box is the union of its primitives' boxes,
-    /// exactly.
+    /// ([`crate::collapse`]). A tree that would need a longer traversal stack than
+    /// [`KERNEL_STACK`] (PLOC chains many equal boxes) is built again over a balanced
+    /// binary tree of median splits. Each slot's box is the union of its primitives'
+    /// boxes, exactly.
     ///
     /// Returns the tree and the primitives in leaf order: a leaf holds the primitives at
     /// positions `first..first + count` of that order, and refers to the items
