@@ -421,8 +421,8 @@ impl<T: Scalar> Bvh<T> {
             return built;
         }
         // A chain from PLOC's passes (many equal boxes): balanced instead, so that the
-        // vector kernels take it and no ray walks the chain.
-        drop(built);
+        // vector kernels take it and no ray walks the chain. The first tree goes first.
+        drop((built, bvh2));
         let bvh2 = median_split(count, &box_of);
         Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost, leaf_items)
     }

@@ -249,9 +249,9 @@ fn copies_of_one_triangle_are_found_as_brute_force_finds_them() {
     let (mut triangles, mut rays) = soup(&mut numbers, 300);
     let copy = [[-6.0, -6.0, 1.0], [6.0, -4.0, -2.0], [0.0, 7.0, 3.0]];
     // Rays aimed at points of the copies (and a little past their edges).
+    let [a, b, c] = copy.map(point);
     for _ in 0..1000 {
         let (u, v) = (numbers.range(-0.1, 1.0), numbers.range(-0.1, 1.0));
-        let [a, b, c] = copy.map(point);
         let target = a + (b - a) * u + (c - a) * v * (1.0 - u);
         rays.push(ray(numbers.vector(14.0), target));
     }
@@ -272,16 +272,7 @@ fn copies_of_one_triangle_are_found_as_brute_force_finds_them() {
             bvh.depth()
         );
         assert_single_rays_find(&scene, &rays, &truth, &format!("{preset:?}"));
-        let (closest, any) = batch_queries(&scene, &rays);
-        for ((r, expected), (got, got_any)) in rays.iter().zip(&truth).zip(closest.iter().zip(&any))
-        {
-            assert_eq!(
-                got.map(|h| h.t as f32),
-                *expected,
-                "{preset:?} batch: {r:?}"
-            );
-            assert_eq!(*got_any, expected.is_some(), "{preset:?} batch any: {r:?}");
-        }
+        assert_batches_find(&scene, &rays, &truth, &format!("{preset:?} batch"));
     }
 }
 
@@ -606,13 +597,9 @@ fn rays_grazing_or_ending_on_the_tree_bounds_find_what_brute_force_finds() {
                         })
                         .collect();
                     assert!(!scene.uses_simd() || scene.traces_as_packet(&group));
-                    let (closest, any) = batch_queries(&scene, &group);
-                    for (i, r) in group.iter().enumerate() {
-                        let expected = brute_force(&triangles, r);
-                        let got = closest[i].map(|h| h.t as f32);
-                        assert_eq!(got, expected, "{name} packet: {r:?}");
-                        assert_eq!(any[i], expected.is_some(), "{name} packet any: {r:?}");
-                    }
+                    let truth: Vec<Option<f32>> =
+                        group.iter().map(|r| brute_force(&triangles, r)).collect();
+                    assert_batches_find(&scene, &group, &truth, &format!("{name} packet"));
                 }
             }
         }
@@ -663,6 +650,16 @@ fn a_tiny_far_sphere_matches_float64_where_the_naive_float32_formula_fails() {
         naive_hits, 0,
         "the naive formula was expected to see nothing"
     );
+}
+
+/// Asserts that the batch queries (64 rays at a time) give each of `rays` `truth`'s
+/// closest-hit distance and any hit.
+fn assert_batches_find(scene: &Scene, rays: &[Ray], truth: &[Option<f32>], label: &str) {
+    let (closest, any) = batch_queries(scene, rays);
+    for ((r, expected), (got, got_any)) in rays.iter().zip(truth).zip(closest.iter().zip(&any)) {
+        assert_eq!(got.map(|h| h.t as f32), *expected, "{label}: {r:?}");
+        assert_eq!(*got_any, expected.is_some(), "{label} any: {r:?}");
+    }
 }
 
 /// Closest and any hits of `rays` through the batch queries, 64 rays at a time (as the
