@@ -47,6 +47,7 @@ pub mod offset;
 #[cfg(target_arch = "x86_64")]
 pub mod packet;
 pub mod plane;
+pub mod ploc;
 pub mod procedural;
 pub mod ray;
 pub mod render;

@@ -7,6 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use raybatch::bvh::BuildPreset;
 use raybatch::mesh::MeshCache;
 use raybatch::triangle::{self, ShearedRay};
 use raybatch::{Manifest, Ray, Scene, SceneGeometry};
@@ -36,22 +37,27 @@ fn files_with(root: &Path, extensions: &[&str]) -> Vec<PathBuf> {
     found
 }
 
+/// The geometry of a manifest holding the mesh file `model` and nothing else.
+fn scene_of(model: &Path) -> SceneGeometry {
+    let dir = Dir::new();
+    dir.write(
+        "m.json",
+        format!(
+            r#"{{"image": {{"width": 8, "height": 8}}, "meshes": [{{"file": {:?}}}]}}"#,
+            model.display().to_string()
+        ),
+    );
+    let manifest = Manifest::load(&dir.join("m.json")).unwrap();
+    SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap()
+}
+
 #[test]
 #[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
 fn scanned_models_trace_exactly_like_brute_force() {
     let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
     assert!(models.len() >= 5, "{models:?}");
     for model in models {
-        let dir = Dir::new();
-        dir.write(
-            "m.json",
-            format!(
-                r#"{{"image": {{"width": 8, "height": 8}}, "meshes": [{{"file": {:?}}}]}}"#,
-                model.display().to_string()
-            ),
-        );
-        let manifest = Manifest::load(&dir.join("m.json")).unwrap();
-        let geometry = SceneGeometry::load(&manifest, &mut MeshCache::new()).unwrap();
+        let geometry = scene_of(&model);
         let triangles = geometry.triangles.clone();
         let scene = Scene::build(&geometry);
         let (lo, hi) = triangles.iter().flatten().fold(
@@ -114,6 +120,50 @@ fn scanned_models_trace_exactly_like_brute_force() {
             "{}: only {hits} hits",
             model.display()
         );
+    }
+}
+
+#[test]
+#[ignore = "needs RAYBATCH_MODELS (the scanned models of ../shared/models)"]
+fn scanned_models_get_obvhs_own_binary_tree_from_our_radius_1_passes() {
+    // Our radius-1 PLOC passes pair up long runs of nodes that no mutual choice merged,
+    // where obvhs' merge one pair a pass; no pass over a scan has such a run, so the
+    // tree must be obvhs' own, node for node, for both presets that search radius 1.
+    let models = files_with(&folder("RAYBATCH_MODELS"), &["obj"]);
+    assert!(models.len() >= 5, "{models:?}");
+    let fields = |bvh: &obvhs::bvh2::Bvh2| -> Vec<_> {
+        (bvh.nodes.iter())
+            .map(|n| {
+                let b = n.aabb();
+                let bits = |v: glam::Vec3A| v.to_array().map(f32::to_bits);
+                (bits(b.min), bits(b.max), n.prim_count, n.first_index)
+            })
+            .collect()
+    };
+    for model in models {
+        let boxes: Vec<obvhs::aabb::Aabb> = (scene_of(&model).triangles.iter())
+            .map(|t| {
+                let [a, b, c] = t.map(glam::Vec3A::from);
+                obvhs::aabb::Aabb::new(a.min(b).min(c), a.max(b).max(c))
+            })
+            .collect();
+        for preset in [BuildPreset::Fastest, BuildPreset::VeryFast] {
+            let params = preset.params(4);
+            let ours = raybatch::bvh::binary_tree(boxes.len(), |i| boxes[i], &params);
+            let theirs = obvhs::ploc::PlocBuilder::new().build(
+                params.ploc_search_distance,
+                &boxes,
+                (0..boxes.len() as u32).collect(),
+                params.sort_precision,
+                params.search_depth_threshold,
+            );
+            assert!(
+                fields(&ours) == fields(&theirs),
+                "{}, {preset:?}: the trees differ",
+                model.display()
+            );
+            assert_eq!(ours.primitive_indices, theirs.primitive_indices);
+        }
     }
 }
 

@@ -1,0 +1,281 @@
+//! PLOC with search radius 1, the binary tree under both of the job presets
+//! ([`crate::bvh::BuildPreset::Fastest`] and `VeryFast`): leaves in Morton order, then
+//! passes that merge each pair of neighbours that choose each other, as obvhs'
+//! `PlocBuilder` does, with one change: a pass that leaves [`LONG_RUN`] or more nodes
+//! in a row unmerged pairs them up itself.
+//!
+//! Why: with radius 1 a node takes its right neighbour unless the left one's merged box
+//! costs strictly less, so two neighbours choose each other only at a local minimum of
+//! the merge costs along the Morton order. Where costs are all equal (copies of one
+//! triangle) or rise steadily, a pass merges one pair or a few: the build takes
+//! quadratic time, and with equal costs the tree is a chain. A million copies of a
+//! triangle did not build in two minutes; a fan of 200,000 triangles took seconds.
+//! Paired up, such a run halves each pass. On the scans of `../shared/models`, the bench's
+//! torus and random boxes no pass has a run that long, so there the tree is obvhs' own,
+//! node for node (`bvh::tests::leaves_made_from_a_box_function_give_obvhs_own_binary_tree`,
+//! `real_models::scanned_models_get_obvhs_own_binary_tree_from_our_radius_1_passes`).
+
+use obvhs::aabb::Aabb;
+use obvhs::bvh2::node::Bvh2Node;
+use obvhs::bvh2::{Bvh2, DEFAULT_MAX_STACK_DEPTH};
+use obvhs::ploc::morton::morton_encode_u64_unorm;
+use rayon::prelude::*;
+
+/// Nodes left unmerged in a row by a pass's mutual choices from which the pass pairs
+/// them up in order itself (a left-over odd one stays). Long enough that real meshes do
+/// not show one (the longest seen: 23 nodes, on beast; 35 in the random boxes of
+/// `bvh::tests`), so their trees stay obvhs'. Short enough that a pass of `n` nodes
+/// leaves about `n · LONG_RUN / (LONG_RUN + 1)` at most, since runs shorter than this
+/// are kept whole only beside merged pairs: all passes together handle at most about
+/// `LONG_RUN + 1` times the leaves. Where every merge costs the same, the tree is at
+/// most `log2(n) + LONG_RUN + 1` deep.
+pub const LONG_RUN: usize = 48;
+
+/// Nodes from which a pass's merge choices are computed in parallel (obvhs' figure).
+const PARALLEL_CHOICES: usize = 300_000;
+
+/// Elements one parallel task takes at least.
+const PARALLEL_MIN: usize = 1 << 14;
+
+/// The binary tree over `leaves` (at least one; leaf `i` holds primitive `i`, as
+/// [`Bvh2Node::new`]`(box, 1, i)`) whose union box is `total`, written into `bvh2`,
+/// whose `nodes` must hold `2 · leaves.len() − 1` nodes (their values are overwritten)
+/// and whose `primitive_indices` must be `0..leaves.len()`. `spare` is work space of
+/// `leaves.len()` nodes. The root is node 0 and children come after their parents.
+/// Returns the number of passes made.
+pub fn build(
+    bvh2: &mut Bvh2,
+    leaves: Vec<Bvh2Node>,
+    mut spare: Vec<Bvh2Node>,
+    total: Aabb,
+) -> usize {
+    let count = leaves.len();
+    debug_assert!(count > 0 && bvh2.nodes.len() == 2 * count - 1);
+    debug_assert!(spare.len() == count);
+    sort_by_morton_code(&leaves, total, &mut spare);
+    let (mut current, mut next) = (spare, leaves);
+    let mut choices = vec![0i8; count];
+    // Pairs are written from the end of the nodes down, the root last to node 0.
+    let mut free = bvh2.nodes.len();
+    let mut passes = 0;
+    let mut live = count;
+    while live > 1 {
+        let nodes = &current[..live];
+        choose(nodes, &mut choices[..live]);
+        let mut pass = Pass {
+            tree: &mut bvh2.nodes,
+            free,
+            next: &mut next,
+            kept: 0,
+        };
+        let mut run_start = 0;
+        let mut i = 0;
+        while i < live {
+            if i + 1 < live && choices[i] == 1 && choices[i + 1] == -1 {
+                pass.carry(&nodes[run_start..i]);
+                // obvhs merges at the right node of the pair, which it puts first.
+                pass.merge(nodes[i + 1], nodes[i]);
+                i += 2;
+                run_start = i;
+            } else {
+                i += 1;
+            }
+        }
+        pass.carry(&nodes[run_start..]);
+        (free, live) = (pass.free, pass.kept);
+        std::mem::swap(&mut current, &mut next);
+        passes += 1;
+    }
+    debug_assert_eq!(free, 1);
+    bvh2.nodes[0] = current[0];
+    bvh2.max_depth = DEFAULT_MAX_STACK_DEPTH.max(passes + 1);
+    bvh2.children_are_ordered_after_parents = true;
+    passes
+}
+
+/// One pass's output: merged pairs go into the tree, and the nodes for the next pass
+/// (new parents and carried nodes, in order) into `next`.
+struct Pass<'a> {
+    tree: &'a mut [Bvh2Node],
+    /// The tree's nodes from here on are written.
+    free: usize,
+    next: &'a mut [Bvh2Node],
+    /// The nodes written to `next` so far.
+    kept: usize,
+}
+
+impl Pass<'_> {
+    fn merge(&mut self, left: Bvh2Node, right: Bvh2Node) {
+        self.free -= 2;
+        self.tree[self.free] = left;
+        self.tree[self.free + 1] = right;
+        let parent = Bvh2Node::new(left.aabb().union(right.aabb()), 0, self.free as u32);
+        self.keep(parent);
+    }
+
+    fn keep(&mut self, node: Bvh2Node) {
+        self.next[self.kept] = node;
+        self.kept += 1;
+    }
+
+    /// Carries `run`, nodes no mutual choice merged, into the next pass: as they are,
+    /// or paired up in order when there are [`LONG_RUN`] or more of them.
+    fn carry(&mut self, run: &[Bvh2Node]) {
+        if run.len() < LONG_RUN {
+            self.next[self.kept..self.kept + run.len()].copy_from_slice(run);
+            self.kept += run.len();
+            return;
+        }
+        let mut pairs = run.chunks_exact(2);
+        for pair in &mut pairs {
+            self.merge(pair[1], pair[0]);
+        }
+        if let [last] = pairs.remainder() {
+            self.keep(*last);
+        }
+    }
+}
+
+/// Each node's choice of neighbour, as obvhs makes it with radius 1: `1` (right) unless
+/// merging with the left one gives a box of strictly smaller half area (`-1`); the last
+/// node chooses left.
+fn choose(nodes: &[Bvh2Node], choices: &mut [i8]) {
+    let cost = |i: usize| nodes[i].aabb().union(nodes[i + 1].aabb()).half_area();
+    let last = nodes.len() - 1;
+    let chunk = |(start, out): (usize, &mut [i8])| {
+        let mut left = if start == 0 {
+            f32::INFINITY
+        } else {
+            cost(start - 1)
+        };
+        for (i, choice) in (start..).zip(out.iter_mut()) {
+            if i == last {
+                *choice = -1;
+                break;
+            }
+            let right = cost(i);
+            *choice = if left < right { -1 } else { 1 };
+            left = right;
+        }
+    };
+    if nodes.len() < PARALLEL_CHOICES {
+        chunk((0, choices));
+    } else {
+        let size = nodes
+            .len()
+            .div_ceil(rayon::current_num_threads())
+            .max(PARALLEL_MIN);
+        (choices.par_chunks_mut(size).enumerate()).for_each(|(n, out)| chunk((n * size, out)));
+    }
+}
+
+/// `leaves` in the order of their centres' 63-bit Morton codes within `total`, written
+/// into `sorted`; ties in the order obvhs' `SortPrecision::U64` gives them (the same
+/// unstable sort of the same pairs).
+fn sort_by_morton_code(leaves: &[Bvh2Node], total: Aabb, sorted: &mut [Bvh2Node]) {
+    #[derive(Clone, Copy)]
+    struct Code {
+        code: u64,
+        index: u64,
+    }
+    // In f64, as obvhs scales them.
+    let scale = 1.0 / total.diagonal().as_dvec3();
+    let offset = -total.min.as_dvec3() * scale;
+    let mut codes: Vec<Code> = (leaves.par_iter().enumerate().with_min_len(PARALLEL_MIN))
+        .map(|(index, leaf)| Code {
+            code: morton_encode_u64_unorm(leaf.aabb().center().as_dvec3() * scale + offset),
+            index: index as u64,
+        })
+        .collect();
+    codes.par_sort_unstable_by_key(|c| c.code);
+    (sorted.par_iter_mut().zip(&codes).with_min_len(PARALLEL_MIN))
+        .for_each(|(node, c)| *node = leaves[c.index as usize]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3A;
+
+    /// The tree `build` makes over `boxes`, checked: every primitive in exactly one leaf,
+    /// and every inner node's box the union of its children's. Returns its depth (a lone
+    /// leaf: 1) and the passes made.
+    fn checked_tree(boxes: &[Aabb]) -> (usize, usize) {
+        let count = boxes.len();
+        let mut bvh2 = Bvh2::zeroed(0);
+        bvh2.nodes = vec![Bvh2Node::default(); 2 * count - 1];
+        bvh2.primitive_indices = (0..count as u32).collect();
+        let leaves = (boxes.iter().enumerate())
+            .map(|(i, b)| Bvh2Node::new(*b, 1, i as u32))
+            .collect();
+        let total = boxes.iter().fold(Aabb::empty(), |all, b| all.union(b));
+        let passes = build(&mut bvh2, leaves, vec![Bvh2Node::default(); count], total);
+        let mut seen = vec![false; boxes.len()];
+        let mut depth = 0;
+        let mut stack = vec![(0usize, 1usize)];
+        while let Some((index, level)) = stack.pop() {
+            depth = depth.max(level);
+            let node = &bvh2.nodes[index];
+            if node.is_leaf() {
+                assert_eq!(node.prim_count, 1);
+                let primitive = bvh2.primitive_indices[node.first_index as usize] as usize;
+                assert!(!seen[primitive], "primitive {primitive} twice");
+                seen[primitive] = true;
+                assert_eq!(*node.aabb(), boxes[primitive]);
+                continue;
+            }
+            let (left, right) = (node.first_index as usize, node.first_index as usize + 1);
+            let union = bvh2.nodes[left].aabb().union(bvh2.nodes[right].aabb());
+            assert_eq!(*node.aabb(), union, "node {index}");
+            stack.extend([(left, level + 1), (right, level + 1)]);
+        }
+        assert!(seen.iter().all(|&s| s), "a primitive is missing");
+        (depth, passes)
+    }
+
+    /// The depth (and passes) a tree over `count` primitives may reach when every pass
+    /// pairs up its long runs and no two choose each other: halving down to a run too
+    /// short to pair, then one merge a pass.
+    fn depth_bound(count: usize) -> usize {
+        count.next_power_of_two().trailing_zeros() as usize + LONG_RUN + 1
+    }
+
+    #[test]
+    fn copies_of_one_box_are_paired_up_not_chained() {
+        // Every neighbour's merged box costs the same, so every node chooses its right
+        // neighbour and only the last pair chooses each other: obvhs' passes merge one
+        // pair each, a chain as deep as the count, in quadratic time.
+        let copy = Aabb::new(Vec3A::ZERO, Vec3A::new(1.0, 1.0, 0.0));
+        for count in [1, 2, 3, LONG_RUN - 1, LONG_RUN, LONG_RUN + 1, 1000, 100_000] {
+            let (depth, passes) = checked_tree(&vec![copy; count]);
+            assert!(depth <= depth_bound(count), "{count}: depth {depth}");
+            assert!(passes <= depth_bound(count), "{count}: {passes} passes");
+        }
+    }
+
+    #[test]
+    fn merges_that_cost_more_and_more_are_paired_up_not_chained() {
+        // Boxes along x whose gaps grow: each node's merge with its right neighbour costs
+        // more than with its left one, so only the first pair chooses each other (and
+        // with the order reversed, only the last). A fan's merges grow so.
+        for reversed in [false, true] {
+            let count = 10_000;
+            let boxes: Vec<Aabb> = (0..count)
+                .map(|i| {
+                    let i = if reversed { count - i } else { i } as f32;
+                    let x = i * i;
+                    Aabb::new(Vec3A::new(x, 0.0, 0.0), Vec3A::new(x + 1.0, 1.0, 1.0))
+                })
+                .collect();
+            let (depth, passes) = checked_tree(&boxes);
+            assert!(
+                depth <= depth_bound(count),
+                "reversed {reversed}: depth {depth}"
+            );
+            assert!(
+                passes <= depth_bound(count),
+                "reversed {reversed}: {passes} passes"
+            );
+        }
+    }
+}
