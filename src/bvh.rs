@@ -376,9 +376,9 @@ impl<T: Scalar> Bvh<T> {
     /// shape a binary tree, which is collapsed into 8-wide nodes with leaves of at most
     /// `params.max_prims_per_leaf` primitives, each leaf costing `leaf_cost`
     /// ([`crate::collapse`]). A tree that would need a longer traversal stack than
-    /// [`KERNEL_STACK`] (obvhs' wider searches chain many equal boxes) is built again over
-    /// a balanced binary tree of median splits. Each slot's box is the union of its primitives'
-    /// boxes, exactly.
+    /// [`KERNEL_STACK`] (obvhs' wider searches chain many equal boxes) is built again
+    /// over a balanced binary tree of median splits. Each slot's box is the union of its
+    /// primitives' boxes, exactly.
     ///
     /// Returns the tree and the primitives in leaf order: a leaf holds the primitives at
     /// positions `first..first + count` of that order, and refers to the items
@@ -733,9 +733,10 @@ impl<T: Scalar> Bvh<T> {
 /// The binary tree over `count` (> 0) primitives, primitive `i` having the box
 /// `box_of(i)`, one primitive per leaf, before any reinsertion: PLOC over the leaves in
 /// Morton order. With search radius 1 (the `Fastest` and `VeryFast` presets) the passes
-/// are ours ([`crate::ploc`]): obvhs' tree wherever no pass leaves [`crate::ploc::LONG_RUN`]
-/// nodes in a row unmerged, and no quadratic build or chain where one does. Wider searches
-/// are obvhs' `PlocBuilder`, the tree its `build` gives for those boxes.
+/// are ours ([`crate::ploc`]): obvhs' tree wherever no pass leaves
+/// [`crate::ploc::LONG_RUN`] nodes in a row unmerged, and no quadratic build or chain
+/// where one does. Wider searches are obvhs' `PlocBuilder`, the tree its `build` gives
+/// for those boxes.
 ///
 /// The leaves are made here straight from `box_of`, in parallel. (`build` wants a list of
 /// boxes, which for a million triangles is 32 MB written and read once, and from 500k
