@@ -781,7 +781,7 @@ pub fn binary_tree(
         })
         .reduce(Aabb::empty, |a, b| a.union(&b));
     if let PlocSearchDistance::Minimum = params.ploc_search_distance {
-        crate::ploc::build(&mut bvh2, leaves, zeros(count), total);
+        crate::ploc::build(&mut bvh2, leaves, total);
         return bvh2;
     }
     let mut builder = PlocBuilder::new();

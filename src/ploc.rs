@@ -40,20 +40,13 @@ const PARALLEL_MIN: usize = 1 << 14;
 /// The binary tree over `leaves` (at least one; leaf `i` holds primitive `i`, as
 /// [`Bvh2Node::new`]`(box, 1, i)`) whose union box is `total`, written into `bvh2`,
 /// whose `nodes` must hold `2 · leaves.len() − 1` nodes (their values are overwritten)
-/// and whose `primitive_indices` must be `0..leaves.len()`. `spare` is work space of
-/// `leaves.len()` nodes. The root is node 0 and children come after their parents.
-/// Returns the number of passes made.
-pub fn build(
-    bvh2: &mut Bvh2,
-    leaves: Vec<Bvh2Node>,
-    mut spare: Vec<Bvh2Node>,
-    total: Aabb,
-) -> usize {
+/// and whose `primitive_indices` must be `0..leaves.len()`. The root is node 0 and
+/// children come after their parents. Returns the number of passes made.
+pub fn build(bvh2: &mut Bvh2, leaves: Vec<Bvh2Node>, total: Aabb) -> usize {
     let count = leaves.len();
     debug_assert!(count > 0 && bvh2.nodes.len() == 2 * count - 1);
-    debug_assert!(spare.len() == count);
-    sort_by_morton_code(&leaves, total, &mut spare);
-    let (mut current, mut next) = (spare, leaves);
+    // The leaves' own array takes each pass's output from the first pass on.
+    let (mut current, mut next) = (sort_by_morton_code(&leaves, total), leaves);
     let mut choices = vec![0i8; count];
     // Pairs are written from the end of the nodes down, the root last to node 0.
     let mut free = bvh2.nodes.len();
@@ -169,10 +162,10 @@ fn choose(nodes: &[Bvh2Node], choices: &mut [i8]) {
     }
 }
 
-/// `leaves` in the order of their centres' 63-bit Morton codes within `total`, written
-/// into `sorted`; ties in the order obvhs' `SortPrecision::U64` gives them (the same
-/// unstable sort of the same pairs).
-fn sort_by_morton_code(leaves: &[Bvh2Node], total: Aabb, sorted: &mut [Bvh2Node]) {
+/// `leaves` in the order of their centres' 63-bit Morton codes within `total`; ties in
+/// the order obvhs' `SortPrecision::U64` gives them (the same unstable sort of the same
+/// pairs). Gathered in parallel, which also spreads the new array's first page touches.
+fn sort_by_morton_code(leaves: &[Bvh2Node], total: Aabb) -> Vec<Bvh2Node> {
     #[derive(Clone, Copy)]
     struct Code {
         code: u64,
@@ -188,8 +181,9 @@ fn sort_by_morton_code(leaves: &[Bvh2Node], total: Aabb, sorted: &mut [Bvh2Node]
         })
         .collect();
     codes.par_sort_unstable_by_key(|c| c.code);
-    (sorted.par_iter_mut().zip(&codes).with_min_len(PARALLEL_MIN))
-        .for_each(|(node, c)| *node = leaves[c.index as usize]);
+    (codes.par_iter().with_min_len(PARALLEL_MIN))
+        .map(|c| leaves[c.index as usize])
+        .collect()
 }
 
 #[cfg(test)]
@@ -209,7 +203,7 @@ mod tests {
             .map(|(i, b)| Bvh2Node::new(*b, 1, i as u32))
             .collect();
         let total = boxes.iter().fold(Aabb::empty(), |all, b| all.union(b));
-        let passes = build(&mut bvh2, leaves, vec![Bvh2Node::default(); count], total);
+        let passes = build(&mut bvh2, leaves, total);
         let mut seen = vec![false; boxes.len()];
         let mut depth = 0;
         let mut stack = vec![(0usize, 1usize)];

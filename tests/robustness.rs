@@ -240,9 +240,10 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
     }
 }
 
-/// Thousands of copies of one triangle, among other triangles: PLOC chains them, and the
-/// tree built again instead must stay within the vector kernels' stack and find what
-/// brute force finds, ray by ray and in batches.
+/// Thousands of copies of one triangle, among other triangles: obvhs' PLOC passes chain
+/// them. Our radius-1 passes pair them up and the wider searches' trees are built again;
+/// either way the tree must stay within the vector kernels' stack and find what brute
+/// force finds, ray by ray and in batches.
 #[test]
 fn copies_of_one_triangle_are_found_as_brute_force_finds_them() {
     let mut numbers = Numbers(11);
