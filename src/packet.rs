@@ -152,8 +152,18 @@ pub struct Visits {
 }
 
 impl Visits {
-    /// Fewest leaves before [`Visits::wasteful`] judges a packet.
+    /// Fewest leaves from which a packet says anything to the pacing ([`record`]): one
+    /// reaching fewer (its rays mostly miss) neither starts nor ends a spell of groups
+    /// traced one by one.
     pub const JUDGED_FROM: u32 = 16;
+    /// Fewest leaves from which a packet may be [`wasteful`](Visits::wasteful): one per
+    /// ray of a full packet. Timing each packet of `raybatch bench`'s full-HD torus
+    /// (through the lens and not) against its rays one by one, those that reached fewer
+    /// were 1.3–3.8x as fast as packets, even with more leaves than rays entering them
+    /// (mostly rays that miss, at the surface's edges). Judged wasteful from 16 leaves,
+    /// they began spells of one by one over the groups around them, which cost the lens
+    /// view's batches a tenth (DEVELOPERS.md, "Packets give way to single rays…").
+    pub const WASTEFUL_FROM: u32 = PACKET as u32;
     /// Leaves from which a packet still [`wasteful`](Visits::wasteful) gives up: sixteen
     /// per ray of a full packet. Of the packets of `raybatch bench`'s views, one in 69 at
     /// 320x180 reached more (up to 2047), the others at most 1023, so hardly any that
@@ -170,10 +180,11 @@ impl Visits {
     /// (DEVELOPERS.md, "Performance notes").
     pub const MOST_LEAVES_PER_ENTRY: u32 = 1;
 
-    /// Whether so few rays entered the leaves the packet reached that the next rays
-    /// nearby are better traced one by one.
+    /// Whether so few rays entered the leaves the packet reached (at least
+    /// [`Visits::WASTEFUL_FROM`]) that the next rays nearby are better traced one by one.
     pub fn wasteful(self) -> bool {
-        self.leaves >= Self::JUDGED_FROM && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
+        self.leaves >= Self::WASTEFUL_FROM
+            && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
     }
 
     /// Whether the rays entered at least [`Visits::JUDGED_FROM`] leaves and hardly any of
@@ -1606,22 +1617,30 @@ mod tests {
 
     #[test]
     fn a_wasteful_packet_sends_the_next_groups_one_by_one_for_doubling_spells() {
+        let leaves = Visits::WASTEFUL_FROM;
         let wasteful = Visits {
-            leaves: 40,
-            entries: 40 / Visits::MOST_LEAVES_PER_ENTRY - 1,
+            leaves,
+            entries: leaves / Visits::MOST_LEAVES_PER_ENTRY - 1,
             entered: 20,
         };
         let useful = Visits {
-            leaves: 40,
-            entries: 40 / Visits::MOST_LEAVES_PER_ENTRY,
+            leaves,
+            entries: leaves / Visits::MOST_LEAVES_PER_ENTRY,
             entered: 20,
+        };
+        // Too few leaves to be wasteful, even with no ray entering them: it ends a spell.
+        let few_leaves = Visits {
+            leaves: Visits::WASTEFUL_FROM - 1,
+            entries: 0,
+            entered: 0,
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
             entered: 0,
         };
-        assert!(wasteful.wasteful() && !useful.wasteful() && !unjudged.wasteful());
+        assert!(wasteful.wasteful() && !useful.wasteful());
+        assert!(!few_leaves.wasteful() && !unjudged.wasteful());
         // A packet gives up only once it has reached that many leaves, and is wasteful.
         let reached = |leaves, entries| Visits {
             leaves,
@@ -1651,9 +1670,17 @@ mod tests {
                 assert_eq!(spell(other), 0);
                 assert_eq!(spell(tree), expected);
             }
-            // A useful packet ends the doubling; a packet reaching few leaves says nothing.
+            // A useful packet ends the doubling, and so does one reaching too few leaves
+            // to be wasteful; a packet reaching fewer still says nothing.
+            for ends in [useful, few_leaves] {
+                record(tree, ends);
+                assert_eq!(spell(tree), 0);
+                record(tree, wasteful);
+                assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
+                record(tree, wasteful);
+                assert_eq!(spell(tree), 2 * SINGLE_AFTER_WASTE);
+            }
             record(tree, useful);
-            assert_eq!(spell(tree), 0);
             record(tree, wasteful);
             record(tree, unjudged);
             assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
