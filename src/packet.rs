@@ -158,11 +158,12 @@ impl Visits {
     pub const JUDGED_FROM: u32 = 16;
     /// Fewest leaves from which a packet may be [`wasteful`](Visits::wasteful): one per
     /// ray of a full packet. Timing each packet of `raybatch bench`'s full-HD torus
-    /// (through the lens and not) against its rays one by one, those that reached fewer
-    /// were 1.3–3.8x as fast as packets, even with more leaves than rays entering them
-    /// (mostly rays that miss, at the surface's edges). Judged wasteful from 16 leaves,
-    /// they began spells of one by one over the groups around them, which cost the lens
-    /// view's batches a tenth (DEVELOPERS.md, "Packets give way to single rays…").
+    /// (through the lens and not) against its rays one by one, the packets that reached
+    /// fewer were 1.3–3.8x as fast as their rays alone, even with more leaves than rays
+    /// entering them (mostly rays that miss, at the surface's edges). Judged wasteful
+    /// from 16 leaves, they began spells of one by one over the groups around them,
+    /// which cost the lens view's batches a tenth (DEVELOPERS.md, "Packets give way to
+    /// single rays…").
     pub const WASTEFUL_FROM: u32 = PACKET as u32;
     /// Leaves from which a packet still [`wasteful`](Visits::wasteful) gives up: sixteen
     /// per ray of a full packet. Of the packets of `raybatch bench`'s views, one in 69 at
