@@ -158,12 +158,13 @@ impl Visits {
     pub const JUDGED_FROM: u32 = 16;
     /// Fewest leaves from which a packet may be [`wasteful`](Visits::wasteful): one per
     /// ray of a full packet. Timing each packet of `raybatch bench`'s full-HD torus
-    /// (through the lens and not) against its rays one by one, the packets that reached
-    /// fewer were 1.3–3.8x as fast as their rays alone, even with more leaves than rays
-    /// entering them (mostly rays that miss, at the surface's edges). Judged wasteful
-    /// from 16 leaves, they began spells of one by one over the groups around them,
-    /// which cost the lens view's batches a tenth (DEVELOPERS.md, "Packets give way to
-    /// single rays…").
+    /// (through the lens and not) against its rays one by one (a probe, not kept), the
+    /// packets that reached fewer were 1.3–3.8x as fast as their rays alone, even with
+    /// more leaves than rays entering them (mostly rays that miss, at the surface's
+    /// edges). Judged wasteful from 16 leaves, they began spells of one by one over the
+    /// groups around them: `raybatch bench --embree --only lens` read the lens view's
+    /// `closest 64` at 0.83–0.90x Embree's streams then, 0.92–0.97x now (DEVELOPERS.md,
+    /// "Packets give way to single rays…").
     pub const WASTEFUL_FROM: u32 = PACKET as u32;
     /// Leaves from which a packet still [`wasteful`](Visits::wasteful) gives up: sixteen
     /// per ray of a full packet. Of the packets of `raybatch bench`'s views, one in 69 at
