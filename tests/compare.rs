@@ -140,6 +140,12 @@ fn unreadable_or_mismatched_images_are_refused() {
         assert_eq!(run.status, 2, "{args:?}");
         assert!(run.stderr.contains(fragment), "{args:?}: {}", run.stderr);
         assert_eq!(run.stderr.lines().count(), 1);
+        // The cause is named once, not once by the message and again by the chain.
+        assert!(
+            run.stderr.matches("os error").count() <= 1,
+            "{}",
+            run.stderr
+        );
     }
 }
 

@@ -32,7 +32,7 @@ fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(error) => {
-            eprintln!("raybatch: {}", one_line(&format!("{error:#}")));
+            eprintln!("raybatch: {}", one_line(&causes(&error)));
             ExitCode::from(USAGE)
         }
     }
@@ -402,6 +402,23 @@ fn progress_bar(quiet: bool) -> indicatif::ProgressBar {
 }
 
 /// Messages are printed one per line, whatever a lower layer put in them.
+/// The error and its causes, `: `-separated, each cause left out when the message before
+/// it already ends with it (the library's errors name their cause in their own message).
+fn causes(error: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in error.chain() {
+        let part = cause.to_string();
+        if text.ends_with(&part) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&part);
+    }
+    text
+}
+
 fn one_line(message: &str) -> String {
     message.split_whitespace().collect::<Vec<_>>().join(" ")
 }
