@@ -132,8 +132,9 @@ unsafe fn refill<B: Batch>(
 /// particular order: the hits [`crate::simd::closest`] gives ray by ray.
 ///
 /// # Safety
-/// The CPU must support AVX2 ([`crate::simd::available`]).
-#[target_feature(enable = "avx2")]
+/// The CPU must have what [`crate::simd::available`] checks: AVX2 and its bit
+/// instructions.
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
 pub unsafe fn closest(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
@@ -163,8 +164,9 @@ pub unsafe fn closest(
 /// hint's.
 ///
 /// # Safety
-/// The CPU must support AVX2 ([`crate::simd::available`]).
-#[target_feature(enable = "avx2")]
+/// The CPU must have what [`crate::simd::available`] checks: AVX2 and its bit
+/// instructions.
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
 pub unsafe fn any(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],

@@ -454,8 +454,8 @@ impl LeafLanes {
 /// [`trace`] with eight-lane leaf tests, compiled for AVX2.
 ///
 /// # Safety
-/// As for [`closest`], with AVX2.
-#[target_feature(enable = "avx2")]
+/// As for [`closest`], with AVX2 and its bit instructions ([`crate::simd::available`]).
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn trace_avx2<const ANY: bool>(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
@@ -470,8 +470,8 @@ unsafe fn trace_avx2<const ANY: bool>(
 /// [`trace`] with sixteen-lane leaf tests, compiled for AVX-512 (and AVX2).
 ///
 /// # Safety
-/// As for [`closest`], with AVX-512F and AVX2.
-#[target_feature(enable = "avx2,avx512f")]
+/// As for [`closest`], with AVX-512F as well ([`simd512::available`]).
+#[target_feature(enable = "avx2,avx512f,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn trace_avx512<const ANY: bool>(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
@@ -1745,7 +1745,7 @@ mod tests {
     /// whose slots this one does not have or holds other triangles in; at both widths.
     #[test]
     fn an_any_hit_packet_tests_first_the_triangles_that_stopped_the_last_one() {
-        if !is_x86_feature_detected!("avx2") {
+        if !crate::simd::available() {
             return;
         }
         // Two triangles making the square |x|, |y| < 1 at z = 4, and small triangles
@@ -1839,10 +1839,10 @@ mod tests {
     /// so that ties are common; eight lanes and (with AVX-512) sixteen, in every row.
     #[test]
     fn a_row_tests_hits_are_taken_as_the_scalar_rules_take_them() {
-        if !is_x86_feature_detected!("avx2") {
+        if !crate::simd::available() {
             return;
         }
-        let wide = is_x86_feature_detected!("avx512f");
+        let wide = simd512::available();
         let mut random = crate::test_random::XorShift::new(23);
         let distances = [-0.5, 0.0, 0.5, 1.0, 1.0f32.next_up(), 2.0, 3.0e38, f32::MAX];
         let slots = [0, 3, 4, 7, 1 << 31, u32::MAX - 1];
@@ -2002,7 +2002,7 @@ mod tests {
     /// bit patterns.
     #[test]
     fn next_up_in_lanes_is_f32_next_up() {
-        if !is_x86_feature_detected!("avx2") {
+        if !crate::simd::available() {
             return;
         }
         let mut random = crate::test_random::XorShift::new(5);
@@ -2026,7 +2026,7 @@ mod tests {
             // SAFETY: AVX-512F is enabled here; `x` holds sixteen floats.
             unsafe { simd512::lanes16(next_up16(_mm512_loadu_ps(x.as_ptr()))) }
         }
-        let wide = is_x86_feature_detected!("avx512f");
+        let wide = simd512::available();
         for chunk in values.chunks_exact(16) {
             let want: Vec<u32> = chunk.iter().map(|x| x.next_up().to_bits()).collect();
             // SAFETY (both): the CPU has the features, checked above.
@@ -2072,7 +2072,7 @@ mod tests {
     /// at and past the waist, at several scales and places.
     #[test]
     fn a_packet_admits_every_box_its_rays_own_tests_admit() {
-        if !is_x86_feature_detected!("avx2") {
+        if !crate::simd::available() {
             return;
         }
         use crate::bvh::{BoxRay, Node, intersect_node};

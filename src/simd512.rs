@@ -17,7 +17,7 @@ use crate::triangle::TriangleBlock;
 /// Whether this CPU can run the sixteen-lane kernels (AVX-512 Foundation; the packet
 /// traversal around them needs AVX2 as well).
 pub fn available() -> bool {
-    is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx2")
+    is_x86_feature_detected!("avx512f") && crate::simd::available()
 }
 
 /// A float32 at `p` in all sixteen lanes.

@@ -462,8 +462,9 @@ impl Ranges {
 /// [gave up](Visits::hopeless) has called nothing either.
 ///
 /// # Safety
-/// The CPU must support AVX2, and `bvh.stack_bound() <= STACK`.
-#[target_feature(enable = "avx2")]
+/// The CPU must have what [`crate::simd::available`] checks, and
+/// `bvh.stack_bound() <= STACK`.
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
 pub unsafe fn closest(
     bvh: &Bvh<f64>,
     spheres: &[Sphere],
@@ -483,7 +484,7 @@ pub unsafe fn closest(
 ///
 /// # Safety
 /// As for [`closest`].
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
 pub unsafe fn any(
     bvh: &Bvh<f64>,
     spheres: &[Sphere],
@@ -496,7 +497,7 @@ pub unsafe fn any(
 }
 
 /// The packet traversal: closest hits, or with `ANY` first hits.
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn trace<const ANY: bool>(
     bvh: &Bvh<f64>,
     spheres: &[Sphere],

@@ -1341,7 +1341,7 @@ fn packets_far_wider_than_the_leaves_give_up_and_their_rays_go_one_by_one() {
         return;
     }
     let mut lanes = vec![LeafLanes::Eight];
-    if is_x86_feature_detected!("avx512f") {
+    if raybatch::simd512::available() {
         lanes.push(LeafLanes::Sixteen);
     }
     let mut mesh = Scene::build(&placed(&procedural::icosphere(6), DMat4::IDENTITY));
