@@ -385,7 +385,8 @@ struct Search {
 /// either.
 ///
 /// # Safety
-/// The CPU must support AVX2, and AVX-512F too for [`LeafLanes::Sixteen`]; and
+/// The CPU must have what [`crate::simd::available`] checks (AVX2 and its bit
+/// instructions), and for [`LeafLanes::Sixteen`] what [`simd512::available`] checks; and
 /// `bvh.stack_bound() <= STACK`.
 #[inline]
 pub unsafe fn closest(
