@@ -15,7 +15,7 @@ use crate::simd::{Hits, TriLanes, exact_edge_lanes, slab_test, watertight_test};
 use crate::triangle::TriangleBlock;
 
 /// Whether this CPU can run the sixteen-lane kernels (AVX-512 Foundation; the packet
-/// traversal around them needs AVX2 as well).
+/// traversal around them needs what [`crate::simd::available`] checks as well).
 pub fn available() -> bool {
     is_x86_feature_detected!("avx512f") && crate::simd::available()
 }

@@ -401,7 +401,6 @@ fn progress_bar(quiet: bool) -> indicatif::ProgressBar {
     bar
 }
 
-/// Messages are printed one per line, whatever a lower layer put in them.
 /// The error and its causes, `: `-separated, each cause left out when the message before
 /// it already ends with it (the library's errors name their cause in their own message).
 fn causes(error: &anyhow::Error) -> String {
@@ -419,6 +418,7 @@ fn causes(error: &anyhow::Error) -> String {
     text
 }
 
+/// Messages are printed one per line, whatever a lower layer put in them.
 fn one_line(message: &str) -> String {
     message.split_whitespace().collect::<Vec<_>>().join(" ")
 }
