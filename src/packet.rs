@@ -163,8 +163,8 @@ impl Visits {
     /// more leaves than rays entering them (mostly rays that miss, at the surface's
     /// edges). Judged wasteful from 16 leaves, they began spells of one by one over the
     /// groups around them: `raybatch bench --embree --only lens` read the lens view's
-    /// `closest 64` at 0.83–0.90x Embree's streams then, 0.92–0.97x now (DEVELOPERS.md,
-    /// "Packets give way to single rays…").
+    /// `closest 64` at 0.83–0.90x Embree's streams then, 0.92–0.97x at 2d33613
+    /// (DEVELOPERS.md, "Packets give way to single rays…").
     pub const WASTEFUL_FROM: u32 = PACKET as u32;
     /// Leaves from which a packet still [`wasteful`](Visits::wasteful) gives up: sixteen
     /// per ray of a full packet. Of the packets of `raybatch bench`'s views, one in 69 at
