@@ -175,12 +175,7 @@ impl<T: Scalar> Node<T> {
     /// Moves a node of a [`Part`] into the whole tree: inner references (other than to the
     /// part's root, which nothing inside the part refers to) shift by `node_offset`, and
     /// leaves turn from positions in the part's order into items.
-    fn relocate(
-        &mut self,
-        node_offset: u32,
-        first_primitive: u32,
-        leaf_items: &impl Fn(u32, u32) -> (u32, u32),
-    ) {
+    fn relocate(&mut self, node_offset: u32, first_primitive: u32) {
         for child in &mut self.children {
             // Empty slots keep reference 0 (never followed: their boxes are empty).
             if *child == 0 {
@@ -190,8 +185,7 @@ impl<T: Scalar> Node<T> {
                 *child += node_offset;
             } else {
                 let (first, count) = leaf_range(*child);
-                let (first, count) = leaf_items(first_primitive + first, count);
-                *child = leaf_ref(first, count);
+                *child = leaf_ref(first_primitive + first, count);
             }
         }
     }
@@ -358,8 +352,9 @@ impl BuildPreset {
     }
 }
 
-/// A built tree over some primitives. Leaves refer to ranges of *items*, which the owner
-/// lays out in leaf order (triangle blocks, spheres).
+/// A built tree over some primitives. Leaves refer to ranges of *items*: as built, the
+/// primitives' positions in leaf order; the owner may lay its items out otherwise and
+/// rewrite the ranges to match (triangle blocks: `Bvh::map_leaves`).
 #[derive(Debug, Clone)]
 pub struct Bvh<T> {
     nodes: Vec<Node<T>>,
@@ -380,17 +375,14 @@ impl<T: Scalar> Bvh<T> {
     /// over a balanced binary tree of median splits. Each slot's box is the union of its
     /// primitives' boxes, exactly.
     ///
-    /// Returns the tree and the primitives in leaf order: a leaf holds the primitives at
-    /// positions `first..first + count` of that order, and refers to the items
-    /// `leaf_items(first, count)` returns (the owner lays its items out in that order:
-    /// triangle blocks, spheres; at most [`MAX_LEAF_ITEMS`] per leaf).
+    /// Returns the tree and the primitives in leaf order: a leaf refers to the range
+    /// `first..first + count` of that order (at most [`MAX_LEAF_ITEMS`]).
     pub fn build(
         boxes: &[Aabb],
         params: BvhBuildParams,
         leaf_cost: LeafCost,
-        leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
     ) -> (Bvh<T>, Vec<u32>) {
-        Bvh::build_from(boxes.len(), |i| boxes[i], params, leaf_cost, leaf_items)
+        Bvh::build_from(boxes.len(), |i| boxes[i], params, leaf_cost)
     }
 
     /// [`Bvh::build`] over `count` primitives, the box of primitive `i` being
@@ -401,7 +393,6 @@ impl<T: Scalar> Bvh<T> {
         box_of: impl Fn(usize) -> Aabb + Sync,
         params: BvhBuildParams,
         leaf_cost: LeafCost,
-        leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
     ) -> (Bvh<T>, Vec<u32>) {
         if count == 0 {
             let empty = Bvh {
@@ -418,7 +409,7 @@ impl<T: Scalar> Bvh<T> {
             params.reinsertion_batch_ratio,
             None,
         );
-        let built = Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost, &leaf_items);
+        let built = Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost);
         if built.0.stack_bound <= KERNEL_STACK {
             return built;
         }
@@ -427,7 +418,7 @@ impl<T: Scalar> Bvh<T> {
         // the chain. The first tree goes first.
         drop((built, bvh2));
         let bvh2 = median_split(count, &box_of);
-        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost, leaf_items)
+        Bvh::from_bvh2(&bvh2, params.max_prims_per_leaf, leaf_cost)
     }
 
     /// Collapses a binary obvhs tree into 8-wide nodes ([`crate::collapse`]), with leaves
@@ -440,12 +431,7 @@ impl<T: Scalar> Bvh<T> {
     /// the tree is laid out first; subtrees below [`PARALLEL_SUBTREE`] primitives are laid
     /// out in parallel and appended in order. Iterative, so a degenerate (very deep) tree
     /// cannot exhaust the call stack.
-    pub fn from_bvh2(
-        bvh2: &Bvh2,
-        max_leaf: u32,
-        leaf_cost: LeafCost,
-        leaf_items: impl Fn(u32, u32) -> (u32, u32) + Sync,
-    ) -> (Bvh<T>, Vec<u32>) {
+    pub fn from_bvh2(bvh2: &Bvh2, max_leaf: u32, leaf_cost: LeafCost) -> (Bvh<T>, Vec<u32>) {
         let collapse = Collapse::new(bvh2, max_leaf.max(1), leaf_cost);
         let total = bvh2.primitive_indices.len();
         assert!(
@@ -478,7 +464,7 @@ impl<T: Scalar> Bvh<T> {
             mut depth,
         } = top;
         for node in &mut nodes {
-            node.relocate(0, 0, &leaf_items);
+            node.relocate(0, 0);
         }
         nodes.reserve(parts.iter().map(|p| p.0.nodes.len() - 1).sum());
         order.reserve(total - order.len());
@@ -487,7 +473,7 @@ impl<T: Scalar> Bvh<T> {
             let first_primitive = order.len() as u32;
             let mut part_nodes = part.nodes;
             for node in &mut part_nodes {
-                node.relocate(node_offset, first_primitive, &leaf_items);
+                node.relocate(node_offset, first_primitive);
             }
             nodes[wide] = part_nodes[0];
             nodes.extend_from_slice(&part_nodes[1..]);
@@ -512,6 +498,27 @@ impl<T: Scalar> Bvh<T> {
 
     pub fn is_empty(&self) -> bool {
         self.nodes.is_empty()
+    }
+
+    /// Every leaf's item range `(first, count)`, in node order.
+    pub fn leaves(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        (self.nodes.iter())
+            .flat_map(|node| node.children)
+            .filter(|&child| child & LEAF != 0)
+            .map(leaf_range)
+    }
+
+    /// Rewrites every leaf's item range `(first, count)` as `items(first, count)` (at most
+    /// [`MAX_LEAF_ITEMS`] items), for an owner that lays its items out otherwise than
+    /// one per primitive in leaf order.
+    pub(crate) fn map_leaves(&mut self, items: impl Fn(u32, u32) -> (u32, u32)) {
+        for child in self.nodes.iter_mut().flat_map(|node| &mut node.children) {
+            if *child & LEAF != 0 {
+                let (first, count) = leaf_range(*child);
+                let (first, count) = items(first, count);
+                *child = leaf_ref(first, count);
+            }
+        }
     }
 
     pub fn nodes(&self) -> &[Node<T>] {
@@ -1218,12 +1225,8 @@ mod tests {
         // For every preset and leaf size: a box obvhs had padded or shrunk, or a slot
         // pointing at the wrong subtree, fails here. The larger set is split into parts
         // laid out in parallel, whose nodes and leaves are then moved into place.
-        let (empty, _): (Bvh<f32>, _) = Bvh::build(
-            &[],
-            BuildPreset::default().params(4),
-            LeafCost::ONE_BY_ONE,
-            |first, count| (first, count),
-        );
+        let (empty, _): (Bvh<f32>, _) =
+            Bvh::build(&[], BuildPreset::default().params(4), LeafCost::ONE_BY_ONE);
         assert_eq!(empty.bounds(), Bounds::EMPTY);
         for (count, presets) in [
             (5000, &BuildPreset::ALL[..]),
@@ -1239,10 +1242,10 @@ mod tests {
                     .flat_map(|m| [(m, LeafCost::ONE_BY_ONE), (m, LeafCost::TRIANGLE_BLOCKS)])
                 {
                     let (bvh, order): (Bvh<f32>, _) =
-                        Bvh::build(&boxes, preset.params(max_leaf), cost, |first, count| {
-                            assert!(count <= max_leaf, "{preset:?}");
-                            (first, count)
-                        });
+                        Bvh::build(&boxes, preset.params(max_leaf), cost);
+                    for (_, count) in bvh.leaves() {
+                        assert!(count <= max_leaf, "{preset:?}");
+                    }
                     assert_eq!(order.len(), boxes.len());
                     let mut seen = vec![false; boxes.len()];
                     checked_union(&bvh, 0, &order, &boxes, &mut seen);
@@ -1278,9 +1281,7 @@ mod tests {
                 for (max_leaf, cost) in [(1, LeafCost::ONE_BY_ONE), (16, LeafCost::TRIANGLE_BLOCKS)]
                 {
                     let (bvh, order): (Bvh<f32>, _) =
-                        Bvh::build(&boxes, preset.params(max_leaf), cost, |first, count| {
-                            (first, count)
-                        });
+                        Bvh::build(&boxes, preset.params(max_leaf), cost);
                     assert!(
                         bvh.stack_bound() <= KERNEL_STACK,
                         "{preset:?}: depth {}",
@@ -1423,7 +1424,6 @@ mod tests {
             &boxes,
             BuildPreset::default().params(4),
             LeafCost::ONE_BY_ONE,
-            |f, c| (f, c),
         );
         let mut expected = vec![Vec::new(); boxes.len()];
         paths(&bvh, 0, &mut Vec::new(), &mut expected);

@@ -507,8 +507,7 @@ mod tests {
                     .into_iter()
                     .flat_map(|m| [(m, LeafCost::ONE_BY_ONE), (m, LeafCost::TRIANGLE_BLOCKS)])
                 {
-                    let (bvh, _): (Bvh<f32>, _) =
-                        Bvh::from_bvh2(&bvh2, max_leaf, cost, |first, count| (first, count));
+                    let (bvh, _): (Bvh<f32>, _) = Bvh::from_bvh2(&bvh2, max_leaf, cost);
                     let root = bvh2.nodes[0].aabb();
                     let root_area = half_area(root.min.to_array(), root.max.to_array());
                     let built = wide_tree_cost(&bvh, 0, cost, root_area);
@@ -557,13 +556,9 @@ mod tests {
             .collect();
         // Triangles per leaf, and nodes.
         let shape = |cost| {
-            let leaves = std::sync::atomic::AtomicUsize::new(0);
             let params = BuildPreset::default().params(16);
-            let (bvh, _): (Bvh<f32>, _) = Bvh::build(&boxes, params, cost, |first, count| {
-                leaves.fetch_add(1, Ordering::Relaxed);
-                (first, count)
-            });
-            let per_leaf = boxes.len() as f64 / leaves.into_inner() as f64;
+            let (bvh, _): (Bvh<f32>, _) = Bvh::build(&boxes, params, cost);
+            let per_leaf = boxes.len() as f64 / bvh.leaves().count() as f64;
             (per_leaf, bvh.nodes().len())
         };
         let (one_by_one, nodes_one_by_one) = shape(LeafCost::ONE_BY_ONE);

@@ -1439,13 +1439,13 @@ pub(crate) fn build_triangles(
         let (first_block, last_block) = (first / block, (first + count - 1) / block);
         (first_block, last_block - first_block + 1)
     };
-    let (bvh, order) = Bvh::build_from(
+    let (mut bvh, order) = Bvh::build_from(
         triangles.len() - dropped.len(),
         box_of,
         params,
         LeafCost::TRIANGLE_BLOCKS,
-        leaf_blocks,
     );
+    bvh.map_leaves(leaf_blocks);
     let order: Vec<u32> = match &kept {
         Some(kept) => order.into_iter().map(|p| kept[p as usize]).collect(),
         None => order,
@@ -1489,13 +1489,7 @@ fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u
         )
     };
     let params = preset.params(SPHERES_PER_LEAF);
-    let (tree, ids) = Bvh::build_from(
-        spheres.len(),
-        box_of,
-        params,
-        LeafCost::ONE_BY_ONE,
-        |first, count| (first, count),
-    );
+    let (tree, ids) = Bvh::build_from(spheres.len(), box_of, params, LeafCost::ONE_BY_ONE);
     let order = ids.iter().map(|&p| spheres[p as usize]).collect();
     (order, ids, tree)
 }

@@ -384,10 +384,7 @@ fn a_deep_tree_never_overflows_the_traversal_stack() {
         .push(Bvh2Node::new(aabb(&bounds[m - 1]), 1, (m - 1) as u32));
     bvh2.primitive_indices = (0..m as u32).collect();
 
-    let (bvh, order): (Bvh<f32>, _) =
-        Bvh::from_bvh2(&bvh2, 1, LeafCost::ONE_BY_ONE, |first, count| {
-            (first, count)
-        });
+    let (bvh, order): (Bvh<f32>, _) = Bvh::from_bvh2(&bvh2, 1, LeafCost::ONE_BY_ONE);
     assert!(bvh.stack_bound() > 1000, "bound {}", bvh.stack_bound());
 
     let origin = glam::Vec3::new(0.0, 0.0, 0.0);
