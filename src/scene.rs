@@ -24,9 +24,8 @@ use crate::ray::Ray;
 use crate::sphere::Sphere;
 use crate::triangle::{self, BLOCK, Nearest, ShearedRay, TriangleBlock, TriangleHit};
 
-/// Most triangles one leaf holds: the collapse's costs ([`LeafCost::TRIANGLE_BLOCKS`])
-/// choose each leaf's size below it (on the bench's meshes, four in five leaves hold two
-/// to eight).
+/// Most triangles one leaf holds (four blocks): the collapse's costs
+/// ([`LeafCost::TRIANGLE_BLOCKS`]) choose each leaf's size below it.
 const TRIANGLES_PER_LEAF: u32 = 16;
 /// Most spheres one leaf holds.
 const SPHERES_PER_LEAF: u32 = 4;
@@ -1430,41 +1429,35 @@ pub(crate) fn build_triangles(
         let [a, b, c] = triangles[id(k) as usize].map(Vec3A::from);
         Aabb::new(a.min(b).min(c), a.max(b).max(c))
     };
-    // Triangles are laid out densely in leaf order, four to a block; a leaf covers the
-    // blocks its range touches. Testing a neighbouring leaf's triangles on the way
-    // is harmless (they are real triangles of the scene) and keeps blocks full.
-    let block = BLOCK as u32;
     let params = preset.params(TRIANGLES_PER_LEAF);
-    let leaf_blocks = |first, count| {
-        let (first_block, last_block) = (first / block, (first + count - 1) / block);
-        (first_block, last_block - first_block + 1)
-    };
     let (mut bvh, order) = Bvh::build_from(
         triangles.len() - dropped.len(),
         box_of,
         params,
         LeafCost::TRIANGLE_BLOCKS,
     );
-    bvh.map_leaves(leaf_blocks);
     let order: Vec<u32> = match &kept {
         Some(kept) => order.into_iter().map(|p| kept[p as usize]).collect(),
         None => order,
     };
-    let blocks = order
-        .par_chunks(BLOCK)
-        .enumerate()
-        .map(|(b, chunk)| {
-            let ahead = (b + READ_AHEAD / BLOCK) * BLOCK;
-            for &id in order.get(ahead..ahead + BLOCK).unwrap_or(&[]) {
-                prefetch_triangle(triangles, id as usize);
+    let runs = own_blocks(&mut bvh, order.len());
+    let blocks = (0..runs.len())
+        .into_par_iter()
+        .map(|b| {
+            if let Some(&(ahead, count)) = runs.get(b + READ_AHEAD / BLOCK) {
+                for &id in &order[ahead as usize..(ahead + count) as usize] {
+                    prefetch_triangle(triangles, id as usize);
+                }
             }
+            let (first, count) = runs[b];
+            let run = &order[first as usize..(first + count) as usize];
             let mut block = TriangleBlock {
                 v: [[[0.0; BLOCK]; 3]; 3],
                 ids: [0; BLOCK],
             };
             for lane in 0..BLOCK {
-                // The last block repeats its last triangle in unused lanes.
-                let id = chunk[lane.min(chunk.len() - 1)];
+                // A leaf's last block repeats its last triangle in unused lanes.
+                let id = run[lane.min(run.len() - 1)];
                 for (k, vertex) in triangles[id as usize].iter().enumerate() {
                     for (axis, &coordinate) in vertex.iter().enumerate() {
                         block.v[k][axis][lane] = coordinate;
@@ -1476,6 +1469,34 @@ pub(crate) fn build_triangles(
         })
         .collect();
     (blocks, bvh)
+}
+
+/// Gives each leaf of `bvh` blocks of its own, and points it at them: a leaf of `n`
+/// triangles gets `⌈n / 4⌉` blocks, its last padded with repeats. Returns each block's run
+/// `(first, count)` of the build's leaf order (of `triangles` positions). Blocks shared
+/// with neighbouring leaves would be fuller, but a ray entering a leaf would test up to
+/// two blocks of its neighbours' triangles: the bench's rays tested a fifth fewer blocks
+/// with blocks of their own (DEVELOPERS.md, "Each leaf has blocks of its own").
+fn own_blocks(bvh: &mut Bvh<f32>, triangles: usize) -> Vec<(u32, u32)> {
+    // The leaves' runs tile the leaf order. Each run's count, at its first position,
+    // becomes the run's first block.
+    let mut first_block = vec![0u32; triangles];
+    for (first, count) in bvh.leaves() {
+        first_block[first as usize] = count;
+    }
+    let mut runs = Vec::with_capacity(triangles / BLOCK * 5 / 4 + 1);
+    let mut first = 0;
+    while first < triangles {
+        let count = first_block[first] as usize;
+        assert!(count > 0, "the leaves tile the leaf order");
+        first_block[first] = runs.len() as u32;
+        for start in (first..first + count).step_by(BLOCK) {
+            runs.push((start as u32, BLOCK.min(first + count - start) as u32));
+        }
+        first += count;
+    }
+    bvh.map_leaves(|first, count| (first_block[first as usize], count.div_ceil(BLOCK as u32)));
+    runs
 }
 
 fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u32>, Bvh<f64>) {

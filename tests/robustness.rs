@@ -240,6 +240,59 @@ fn traversal_finds_what_brute_force_finds_with_every_preset() {
     }
 }
 
+/// Each leaf tests blocks of its own: its triangles in order, four to a block, the last
+/// block padded with its last triangle. Every triangle with area is in exactly one leaf,
+/// each lane holds its triangle's own vertices, and no block serves two leaves (a shared
+/// block would have a ray test a neighbour's triangles). Over every preset, on a soup with
+/// degenerate triangles (left out) and on a closed mesh.
+#[test]
+fn each_leaf_has_blocks_of_its_own_holding_exactly_its_triangles() {
+    let mut numbers = Numbers(5);
+    let (soup, _) = soup(&mut numbers, 3000);
+    let sphere = placed(&procedural::icosphere(4), DMat4::IDENTITY).triangles;
+    for (name, triangles) in [("soup", soup), ("icosphere", sphere)] {
+        let with_area: Vec<u32> = (0..triangles.len() as u32)
+            .filter(|&i| !triangle::is_degenerate(&triangles[i as usize]))
+            .collect();
+        assert!(with_area.len() < triangles.len() || name == "icosphere");
+        for preset in BuildPreset::ALL {
+            let context = format!("{name}, {preset:?}");
+            let tree = raybatch::scene::TriangleTree::build(&triangles, preset);
+            let blocks = tree.blocks();
+            let mut block_leaves = vec![0; blocks.len()];
+            let mut leaves_of_triangle = vec![0; triangles.len()];
+            for (first, count) in tree.bvh().leaves() {
+                let range = first as usize..(first + count) as usize;
+                for b in range.clone() {
+                    block_leaves[b] += 1;
+                }
+                let ids: Vec<u32> = blocks[range].iter().flat_map(|b| b.ids).collect();
+                // The leaf's triangles, then repeats of the last to fill its last block.
+                let mut own = ids.clone();
+                own.dedup();
+                let last = *own.last().unwrap();
+                assert_eq!(count as usize, own.len().div_ceil(4), "{context}");
+                assert!(ids[own.len()..].iter().all(|&id| id == last), "{context}");
+                for id in own {
+                    leaves_of_triangle[id as usize] += 1;
+                }
+            }
+            assert!(block_leaves.iter().all(|&n| n == 1), "{context}");
+            for (id, &n) in leaves_of_triangle.iter().enumerate() {
+                let expected = usize::from(with_area.binary_search(&(id as u32)).is_ok());
+                assert_eq!(n, expected, "{context}: triangle {id}");
+            }
+            for block in blocks {
+                for lane in 0..4 {
+                    let id = block.ids[lane] as usize;
+                    let vertices = [0, 1, 2].map(|k| block.vertex(lane, k));
+                    assert_eq!(vertices, triangles[id], "{context}: triangle {id}");
+                }
+            }
+        }
+    }
+}
+
 /// Thousands of copies of one triangle, among other triangles: obvhs' PLOC passes chain
 /// them. Our radius-1 passes pair them up and the wider searches' trees are built again;
 /// either way the tree must stay within the vector kernels' stack and find what brute
