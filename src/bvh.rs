@@ -174,7 +174,8 @@ impl<T: Scalar> Node<T> {
 
     /// Moves a node of a [`Part`] into the whole tree: inner references (other than to the
     /// part's root, which nothing inside the part refers to) shift by `node_offset`, and
-    /// leaves turn from positions in the part's order into items.
+    /// leaves from positions in the part's order to positions in the whole tree's, by
+    /// `first_primitive`.
     fn relocate(&mut self, node_offset: u32, first_primitive: u32) {
         for child in &mut self.children {
             // Empty slots keep reference 0 (never followed: their boxes are empty).
