@@ -1481,10 +1481,12 @@ fn own_blocks(bvh: &mut Bvh<f32>, triangles: usize) -> Vec<(u32, u32)> {
     // The leaves' runs tile the leaf order. Each run's count, at its first position,
     // becomes the run's first block.
     let mut first_block = vec![0u32; triangles];
+    let mut blocks = 0;
     for (first, count) in bvh.leaves() {
         first_block[first as usize] = count;
+        blocks += count.div_ceil(BLOCK as u32) as usize;
     }
-    let mut runs = Vec::with_capacity(triangles / BLOCK * 5 / 4 + 1);
+    let mut runs = Vec::with_capacity(blocks);
     let mut first = 0;
     while first < triangles {
         let count = first_block[first] as usize;
