@@ -380,6 +380,13 @@ mod tests {
         d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
     }
 
+    /// A leaf's cost in float64, counted independently of [`LeafCost::of`]: whole groups,
+    /// a part-full last group tested all the same.
+    fn leaf_cost(cost: LeafCost, primitives: u32, area: f64) -> f64 {
+        let groups = (0..primitives).step_by(cost.group as usize).count() as f64;
+        area * f64::from(cost.per_group) * groups
+    }
+
     /// The cheapest wide tree under binary node `n` made a wide node, found by listing
     /// every set of at most eight descendants that can fill its slots (float64).
     struct Exhaustive<'a> {
@@ -430,9 +437,7 @@ mod tests {
             let node = &self.bvh2.nodes[n];
             let primitives = self.primitives(n);
             let as_leaf = if node.is_leaf() || primitives <= self.max_leaf {
-                // Whole groups: a part-full last group is tested all the same.
-                let groups = (0..primitives).step_by(self.cost.group as usize).count() as f64;
-                self.area(n) * f64::from(self.cost.per_group) * groups
+                leaf_cost(self.cost, primitives, self.area(n))
             } else {
                 f64::INFINITY
             };
@@ -470,9 +475,7 @@ mod tests {
             let max = [0, 1, 2].map(|a| node.planes[1][a][slot]);
             let area = half_area(min, max);
             total += if reference & LEAF != 0 {
-                let (_, primitives) = leaf_range(reference);
-                let groups = (0..primitives).step_by(cost.group as usize).count() as f64;
-                area * f64::from(cost.per_group) * groups
+                leaf_cost(cost, leaf_range(reference).1, area)
             } else {
                 wide_tree_cost(bvh, reference, cost, area)
             };
