@@ -31,10 +31,8 @@ use rayon::prelude::*;
 /// most `log2(n) + LONG_RUN + 1` deep.
 pub const LONG_RUN: usize = 48;
 
-/// Nodes from which a pass's merge choices are computed in parallel (obvhs' figure).
-const PARALLEL_CHOICES: usize = 300_000;
-
-/// Elements one parallel task takes at least.
+/// Elements one parallel task takes at least. A pass's choices are made, and its nodes
+/// merged, in parallel from two such pieces on ([`pass`]).
 const PARALLEL_MIN: usize = 1 << 14;
 
 /// The binary tree over `leaves` (at least one; leaf `i` holds primitive `i`, as
@@ -55,27 +53,13 @@ pub fn build(bvh2: &mut Bvh2, leaves: Vec<Bvh2Node>, total: Aabb) -> usize {
     while live > 1 {
         let nodes = &current[..live];
         choose(nodes, &mut choices[..live]);
-        let mut pass = Pass {
-            tree: &mut bvh2.nodes,
-            free,
-            next: &mut next,
-            kept: 0,
-        };
-        let mut run_start = 0;
-        let mut i = 0;
-        while i < live {
-            if i + 1 < live && choices[i] == 1 && choices[i + 1] == -1 {
-                pass.carry(&nodes[run_start..i]);
-                // obvhs merges at the right node of the pair, which it puts first.
-                pass.merge(nodes[i + 1], nodes[i]);
-                i += 2;
-                run_start = i;
-            } else {
-                i += 1;
-            }
-        }
-        pass.carry(&nodes[run_start..]);
-        (free, live) = (pass.free, pass.kept);
+        (free, live) = pass(
+            nodes,
+            &choices[..live],
+            &mut bvh2.nodes[..free],
+            &mut next,
+            PARALLEL_MIN,
+        );
         std::mem::swap(&mut current, &mut next);
         passes += 1;
     }
@@ -86,10 +70,136 @@ pub fn build(bvh2: &mut Bvh2, leaves: Vec<Bvh2Node>, total: Aabb) -> usize {
     passes
 }
 
-/// One pass's output: merged pairs go into the tree, and the nodes for the next pass
+/// One pass over `nodes` with their `choices`: merged pairs go into the end of `tree`,
+/// from its last node down, and the nodes for the next pass (new parents and carried
+/// nodes, in order) into `next`. Returns the number of `tree`'s nodes still unwritten and
+/// the number written to `next`.
+///
+/// From two pieces of at least `piece` nodes on, the pieces are walked in parallel. Each
+/// piece but the first starts where a mutual pair does: a pair is the same whatever the
+/// walk's start (its right node chose left, so it cannot start another pair), and every
+/// run of unmerged nodes then lies in one piece. Counted first, each piece knows where its
+/// output goes, so the tree and the next pass's nodes are those of one walk, node for node.
+fn pass(
+    nodes: &[Bvh2Node],
+    choices: &[i8],
+    tree: &mut [Bvh2Node],
+    next: &mut [Bvh2Node],
+    piece: usize,
+) -> (usize, usize) {
+    let free = tree.len();
+    if nodes.len() < 2 * piece {
+        let mut out = Pass::new(tree, 0, next);
+        out.walk(nodes, choices);
+        return (out.free, out.kept);
+    }
+    // A piece starts at the first pair from each multiple of `piece` on; where the next
+    // `piece` nodes hold none, the piece before runs on.
+    let starts: Vec<usize> = (0..nodes.len())
+        .step_by(piece)
+        .filter_map(|from| {
+            let to = (from + piece).min(nodes.len() - 1);
+            (from..to).find(|&i| from == 0 || pair_at(choices, i))
+        })
+        .collect();
+    let ends = starts.iter().skip(1).copied().chain([nodes.len()]);
+    let ranges: Vec<(usize, usize)> = starts.iter().copied().zip(ends).collect();
+    let pieces: Vec<(usize, usize, Output)> = (ranges.into_par_iter())
+        .map(|(start, end)| (start, end, Output::of(&choices[start..end])))
+        .collect();
+    // Each piece's share of `tree` (downwards) and of `next` (upwards), in order.
+    let (mut tree_left, mut next_left) = (tree, next);
+    let mut work = Vec::with_capacity(pieces.len());
+    for &(start, end, output) in &pieces {
+        let below = tree_left.len() - 2 * output.merges;
+        let (lower, mine) = std::mem::take(&mut tree_left).split_at_mut(below);
+        let (their_next, later) = std::mem::take(&mut next_left).split_at_mut(output.kept);
+        work.push((start..end, Pass::new(mine, below, their_next)));
+        (tree_left, next_left) = (lower, later);
+    }
+    work.into_par_iter().for_each(|(range, mut out)| {
+        out.walk(&nodes[range.clone()], &choices[range]);
+        debug_assert!(out.free == out.base && out.kept == out.next.len());
+    });
+    let merges: usize = pieces.iter().map(|(_, _, output)| output.merges).sum();
+    let kept: usize = pieces.iter().map(|(_, _, output)| output.kept).sum();
+    (free - 2 * merges, kept)
+}
+
+/// Whether nodes `i` and `i + 1` choose each other.
+fn pair_at(choices: &[i8], i: usize) -> bool {
+    choices[i] == 1 && choices[i + 1] == -1
+}
+
+/// A stretch of a walk over a pass's choices.
+enum Segment {
+    /// Nodes no mutual choice merged (perhaps none).
+    Run(std::ops::Range<usize>),
+    /// Nodes `i` and `i + 1`, which chose each other.
+    Pair(usize),
+}
+
+/// The segments of a walk over `choices` from its start, in order.
+fn segments(choices: &[i8], mut each: impl FnMut(Segment)) {
+    let mut run_start = 0;
+    let mut i = 0;
+    while i < choices.len() {
+        if i + 1 < choices.len() && pair_at(choices, i) {
+            each(Segment::Run(run_start..i));
+            each(Segment::Pair(i));
+            i += 2;
+            run_start = i;
+        } else {
+            i += 1;
+        }
+    }
+    each(Segment::Run(run_start..choices.len()));
+}
+
+/// What a walk writes: pairs into the tree, nodes for the next pass.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Output {
+    merges: usize,
+    kept: usize,
+}
+
+impl Output {
+    /// What a walk over `choices` writes, counted without writing it.
+    fn of(choices: &[i8]) -> Output {
+        let mut output = Output::default();
+        segments(choices, |segment| {
+            let written = match segment {
+                Segment::Run(run) => Output::carried(run.len()),
+                Segment::Pair(_) => Output { merges: 1, kept: 1 },
+            };
+            output.merges += written.merges;
+            output.kept += written.kept;
+        });
+        output
+    }
+
+    /// What [`Pass::carry`] writes for a run of `len` nodes.
+    fn carried(len: usize) -> Output {
+        if len < LONG_RUN {
+            Output {
+                merges: 0,
+                kept: len,
+            }
+        } else {
+            Output {
+                merges: len / 2,
+                kept: len.div_ceil(2),
+            }
+        }
+    }
+}
+
+/// One walk's output: merged pairs go into the tree, and the nodes for the next pass
 /// (new parents and carried nodes, in order) into `next`.
 struct Pass<'a> {
+    /// The tree's nodes from `base` on.
     tree: &'a mut [Bvh2Node],
+    base: usize,
     /// The tree's nodes from here on are written.
     free: usize,
     next: &'a mut [Bvh2Node],
@@ -97,11 +207,31 @@ struct Pass<'a> {
     kept: usize,
 }
 
-impl Pass<'_> {
+impl<'a> Pass<'a> {
+    /// Writes pairs from the end of `tree` (the tree's nodes from `base` on) down.
+    fn new(tree: &'a mut [Bvh2Node], base: usize, next: &'a mut [Bvh2Node]) -> Pass<'a> {
+        Pass {
+            free: base + tree.len(),
+            tree,
+            base,
+            next,
+            kept: 0,
+        }
+    }
+
+    fn walk(&mut self, nodes: &[Bvh2Node], choices: &[i8]) {
+        segments(choices, |segment| match segment {
+            Segment::Run(run) => self.carry(&nodes[run]),
+            // obvhs merges at the right node of the pair, which it puts first.
+            Segment::Pair(i) => self.merge(nodes[i + 1], nodes[i]),
+        });
+    }
+
     fn merge(&mut self, left: Bvh2Node, right: Bvh2Node) {
         self.free -= 2;
-        self.tree[self.free] = left;
-        self.tree[self.free + 1] = right;
+        let at = self.free - self.base;
+        self.tree[at] = left;
+        self.tree[at + 1] = right;
         let parent = Bvh2Node::new(left.aabb().union(right.aabb()), 0, self.free as u32);
         self.keep(parent);
     }
@@ -151,7 +281,7 @@ fn choose(nodes: &[Bvh2Node], choices: &mut [i8]) {
             left = right;
         }
     };
-    if nodes.len() < PARALLEL_CHOICES {
+    if nodes.len() < 2 * PARALLEL_MIN {
         chunk((0, choices));
     } else {
         let size = nodes
@@ -232,6 +362,61 @@ mod tests {
     /// short to pair, then one merge a pass.
     fn depth_bound(count: usize) -> usize {
         count.next_power_of_two().trailing_zeros() as usize + LONG_RUN + 1
+    }
+
+    #[test]
+    fn a_pass_walked_in_pieces_writes_what_one_walk_writes() {
+        // Boxes in Morton-like disorder with stretches of copies among them, so that a
+        // pass has mutual pairs, short runs and long runs (paired up), some across the
+        // places where pieces would start if they were not moved to a pair's start.
+        let mut random = crate::test_random::XorShift::new(7);
+        let mut nodes = Vec::new();
+        for stretch in 0.. {
+            if nodes.len() >= 5000 {
+                break;
+            }
+            let corner = Vec3A::new(random.unit_f32(), random.unit_f32(), random.unit_f32());
+            let size = Vec3A::splat(0.01 + random.unit_f32());
+            let copies = match stretch % 16 {
+                5 => 2,
+                9 => LONG_RUN - 1,
+                12 => LONG_RUN,
+                15 => 3 * LONG_RUN + 1,
+                _ => 1,
+            };
+            let copy = Bvh2Node::new(Aabb::new(corner, corner + size), 0, nodes.len() as u32);
+            nodes.extend(std::iter::repeat_n(copy, copies));
+        }
+        let bits = |nodes: &[Bvh2Node]| -> Vec<_> {
+            (nodes.iter())
+                .map(|n| {
+                    let b = n.aabb();
+                    let bits = |v: Vec3A| v.to_array().map(f32::to_bits);
+                    (bits(b.min), bits(b.max), n.prim_count, n.first_index)
+                })
+                .collect()
+        };
+        let mut choices = vec![0i8; nodes.len()];
+        choose(&nodes, &mut choices);
+        let written = |piece: usize| {
+            let mut tree = vec![Bvh2Node::default(); 2 * nodes.len()];
+            let mut next = vec![Bvh2Node::default(); nodes.len()];
+            let (free, kept) = pass(&nodes, &choices, &mut tree, &mut next, piece);
+            (free, bits(&tree[free..]), bits(&next[..kept]))
+        };
+        let whole = written(nodes.len());
+        let merges = (2 * nodes.len() - whole.0) / 2;
+        let pairs = (1..nodes.len())
+            .filter(|&i| pair_at(&choices, i - 1))
+            .count();
+        // Both kinds of merge, many times over.
+        assert!(
+            pairs >= 100 && merges >= pairs + 1000,
+            "{pairs} pairs, {merges} merges"
+        );
+        for piece in [1, 2, 3, 5, LONG_RUN, 1000, nodes.len() / 2] {
+            assert!(written(piece) == whole, "pieces of {piece}");
+        }
     }
 
     #[test]
