@@ -366,9 +366,9 @@ mod tests {
 
     #[test]
     fn a_pass_walked_in_pieces_writes_what_one_walk_writes() {
-        // Boxes in Morton-like disorder with stretches of copies among them, so that a
-        // pass has mutual pairs, short runs and long runs (paired up), some across the
-        // places where pieces would start if they were not moved to a pair's start.
+        // Random boxes with stretches of copies among them, so that a pass has mutual
+        // pairs, short runs and long runs (paired up), some across the places where
+        // pieces would start if they were not moved to a pair's start.
         let mut random = crate::test_random::XorShift::new(7);
         let mut nodes = Vec::new();
         for stretch in 0.. {
