@@ -126,6 +126,11 @@ fn pass(
     (free - 2 * merges, kept)
 }
 
+/// Whether a run of `len` nodes no mutual choice merged is paired up in order.
+fn pairs_up(len: usize) -> bool {
+    len >= LONG_RUN
+}
+
 /// Whether nodes `i` and `i + 1` choose each other.
 fn pair_at(choices: &[i8], i: usize) -> bool {
     choices[i] == 1 && choices[i + 1] == -1
@@ -180,15 +185,15 @@ impl Output {
 
     /// What [`Pass::carry`] writes for a run of `len` nodes.
     fn carried(len: usize) -> Output {
-        if len < LONG_RUN {
-            Output {
-                merges: 0,
-                kept: len,
-            }
-        } else {
+        if pairs_up(len) {
             Output {
                 merges: len / 2,
                 kept: len.div_ceil(2),
+            }
+        } else {
+            Output {
+                merges: 0,
+                kept: len,
             }
         }
     }
@@ -244,7 +249,7 @@ impl<'a> Pass<'a> {
     /// Carries `run`, nodes no mutual choice merged, into the next pass: as they are,
     /// or paired up in order when there are [`LONG_RUN`] or more of them.
     fn carry(&mut self, run: &[Bvh2Node]) {
-        if run.len() < LONG_RUN {
+        if !pairs_up(run.len()) {
             self.next[self.kept..self.kept + run.len()].copy_from_slice(run);
             self.kept += run.len();
             return;
