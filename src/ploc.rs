@@ -87,7 +87,6 @@ fn pass(
     next: &mut [Bvh2Node],
     piece: usize,
 ) -> (usize, usize) {
-    let free = tree.len();
     if nodes.len() < 2 * piece {
         let mut out = Pass::new(tree, 0, next);
         out.walk(nodes, choices);
@@ -110,20 +109,21 @@ fn pass(
     // Each piece's share of `tree` (downwards) and of `next` (upwards), in order.
     let (mut tree_left, mut next_left) = (tree, next);
     let mut work = Vec::with_capacity(pieces.len());
+    let mut kept = 0;
     for &(start, end, output) in &pieces {
         let below = tree_left.len() - 2 * output.merges;
         let (lower, mine) = std::mem::take(&mut tree_left).split_at_mut(below);
         let (their_next, later) = std::mem::take(&mut next_left).split_at_mut(output.kept);
         work.push((start..end, Pass::new(mine, below, their_next)));
         (tree_left, next_left) = (lower, later);
+        kept += output.kept;
     }
     work.into_par_iter().for_each(|(range, mut out)| {
         out.walk(&nodes[range.clone()], &choices[range]);
         debug_assert!(out.free == out.base && out.kept == out.next.len());
     });
-    let merges: usize = pieces.iter().map(|(_, _, output)| output.merges).sum();
-    let kept: usize = pieces.iter().map(|(_, _, output)| output.kept).sum();
-    (free - 2 * merges, kept)
+    // What no piece writes to: the tree's nodes still unwritten.
+    (tree_left.len(), kept)
 }
 
 /// Whether a run of `len` nodes no mutual choice merged is paired up in order.
