@@ -740,10 +740,10 @@ impl<T: Scalar> Bvh<T> {
 
 /// The binary tree over `count` (> 0) primitives, primitive `i` having the box
 /// `box_of(i)`, one primitive per leaf, before any reinsertion: PLOC over the leaves in
-/// Morton order. With search radius 1 (the `Fastest` and `VeryFast` presets) the passes
-/// are ours ([`crate::ploc`]): obvhs' tree wherever no pass leaves
-/// [`crate::ploc::LONG_RUN`] nodes in a row unmerged, and no quadratic build or chain
-/// where one does. Wider searches are obvhs' `PlocBuilder`, the tree its `build` gives
+/// Morton order. With search radius 1 (the `Fastest` and `VeryFast` presets) the sort
+/// and passes are ours ([`crate::morton`], [`crate::ploc`]): the tree obvhs' passes make
+/// from the leaves in the same order wherever no pass leaves [`crate::ploc::LONG_RUN`]
+/// nodes in a row unmerged, and no quadratic build or chain where one does. Wider searches are obvhs' `PlocBuilder`, the tree its `build` gives
 /// for those boxes.
 ///
 /// The leaves are made here straight from `box_of`, in parallel. (`build` wants a list of
@@ -1369,12 +1369,20 @@ mod tests {
             for &preset in presets {
                 let params = preset.params(4);
                 let ours = binary_tree(count, |i| boxes[i], &params);
+                // Our radius-1 passes take the leaves in `morton`'s order. Where codes are
+                // equal (here the small boxes' centres often round to one code), obvhs'
+                // unstable sort would pick an order of its own; given the boxes already
+                // sorted, it leaves them as they are.
+                let order: Vec<u32> = match params.ploc_search_distance {
+                    obvhs::ploc::PlocSearchDistance::Minimum => morton_order(&boxes),
+                    _ => (0..count as u32).collect(),
+                };
                 // (`PlocBuilder::new`, not `with_capacity`: the latter's zeroed per-thread
                 // boxes put the origin into the total box obvhs takes from 500k boxes.)
                 let theirs = obvhs::ploc::PlocBuilder::new().build(
                     params.ploc_search_distance,
-                    &boxes,
-                    (0..count as u32).collect(),
+                    &order.iter().map(|&i| boxes[i as usize]).collect::<Vec<_>>(),
+                    order.clone(),
                     params.sort_precision,
                     params.search_depth_threshold,
                 );
@@ -1396,10 +1404,23 @@ mod tests {
                     fields(&ours) == fields(&theirs),
                     "{count} boxes, {preset:?}: the nodes differ"
                 );
-                assert_eq!(ours.primitive_indices, theirs.primitive_indices);
+                // A leaf names its primitive; obvhs keeps the list of indices it was given.
+                assert!(ours.primitive_indices.iter().copied().eq(0..count as u32));
+                assert_eq!(theirs.primitive_indices, order);
                 assert_eq!(ours.max_depth, theirs.max_depth);
             }
         }
+    }
+
+    /// The primitives in the order [`crate::morton::sorted_leaves`] puts their boxes.
+    fn morton_order(boxes: &[Aabb]) -> Vec<u32> {
+        let leaves: Vec<_> = (boxes.iter().zip(0..))
+            .map(|(b, i)| obvhs::bvh2::node::Bvh2Node::new(*b, 1, i))
+            .collect();
+        let total = boxes.iter().fold(Aabb::empty(), |all, b| all.union(b));
+        (crate::morton::sorted_leaves(&leaves, total).iter())
+            .map(|leaf| leaf.first_index)
+            .collect()
     }
 
     /// Records for each item the nodes from the root down to the node of its leaf.

@@ -42,6 +42,7 @@ pub mod interleaved;
 pub mod job;
 pub mod manifest;
 pub mod mesh;
+pub mod morton;
 pub mod obj;
 pub mod offset;
 #[cfg(target_arch = "x86_64")]

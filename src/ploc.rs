@@ -11,20 +11,22 @@
 //! quadratic time, and with equal costs the tree is a chain. A million copies of a
 //! triangle did not build in two minutes; a fan of 200,000 triangles took seconds.
 //! Paired up, such a run halves each pass. On the scans of `../shared/models`, the bench's
-//! torus and random boxes no pass has a run that long, so there the tree is obvhs' own,
-//! node for node (`bvh::tests::leaves_made_from_a_box_function_give_obvhs_own_binary_tree`,
+//! torus and random boxes no pass has a run that long, so there the tree is the one
+//! obvhs' `PlocBuilder` makes from the leaves in the same order, node for node
+//! (`bvh::tests::leaves_made_from_a_box_function_give_obvhs_own_binary_tree`,
 //! `real_models::scanned_models_get_obvhs_own_binary_tree_from_our_radius_1_passes`).
+//! The order is [`crate::morton`]'s: obvhs' Morton codes, with leaves of equal codes in
+//! their own order, where obvhs' unstable sort may take them in another.
 
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::node::Bvh2Node;
 use obvhs::bvh2::{Bvh2, DEFAULT_MAX_STACK_DEPTH};
-use obvhs::ploc::morton::morton_encode_u64_unorm;
 use rayon::prelude::*;
 
 /// Nodes left unmerged in a row by a pass's mutual choices from which the pass pairs
 /// them up in order itself (a left-over odd one stays). Long enough that real meshes do
 /// not show one (the longest seen: 23 nodes, on beast; 35 in the random boxes of
-/// `bvh::tests`), so their trees stay obvhs'. Short enough that a pass of `n` nodes
+/// `bvh::tests`), so their trees stay those of obvhs' passes. Short enough that a pass of `n` nodes
 /// leaves about `n · LONG_RUN / (LONG_RUN + 1)` at most, since runs shorter than this
 /// are kept whole only beside merged pairs: all passes together handle at most about
 /// `LONG_RUN + 1` times the leaves. Where every merge costs the same, the tree is at
@@ -44,7 +46,7 @@ pub fn build(bvh2: &mut Bvh2, leaves: Vec<Bvh2Node>, total: Aabb) -> usize {
     let count = leaves.len();
     debug_assert!(count > 0 && bvh2.nodes.len() == 2 * count - 1);
     // The leaves' own array takes each pass's output from the first pass on.
-    let (mut current, mut next) = (sort_by_morton_code(&leaves, total), leaves);
+    let (mut current, mut next) = (crate::morton::sorted_leaves(&leaves, total), leaves);
     let mut choices = vec![0i8; count];
     // Pairs are written from the end of the nodes down, the root last to node 0.
     let mut free = bvh2.nodes.len();
@@ -295,30 +297,6 @@ fn choose(nodes: &[Bvh2Node], choices: &mut [i8]) {
             .max(PARALLEL_MIN);
         (choices.par_chunks_mut(size).enumerate()).for_each(|(n, out)| chunk((n * size, out)));
     }
-}
-
-/// `leaves` in the order of their centres' 63-bit Morton codes within `total`; ties in
-/// the order obvhs' `SortPrecision::U64` gives them (the same unstable sort of the same
-/// pairs). Gathered in parallel, which also spreads the new array's first page touches.
-fn sort_by_morton_code(leaves: &[Bvh2Node], total: Aabb) -> Vec<Bvh2Node> {
-    #[derive(Clone, Copy)]
-    struct Code {
-        code: u64,
-        index: u64,
-    }
-    // In f64, as obvhs scales them.
-    let scale = 1.0 / total.diagonal().as_dvec3();
-    let offset = -total.min.as_dvec3() * scale;
-    let mut codes: Vec<Code> = (leaves.par_iter().enumerate().with_min_len(PARALLEL_MIN))
-        .map(|(index, leaf)| Code {
-            code: morton_encode_u64_unorm(leaf.aabb().center().as_dvec3() * scale + offset),
-            index: index as u64,
-        })
-        .collect();
-    codes.par_sort_unstable_by_key(|c| c.code);
-    (codes.par_iter().with_min_len(PARALLEL_MIN))
-        .map(|c| leaves[c.index as usize])
-        .collect()
 }
 
 #[cfg(test)]
