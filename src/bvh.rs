@@ -743,8 +743,8 @@ impl<T: Scalar> Bvh<T> {
 /// Morton order. With search radius 1 (the `Fastest` and `VeryFast` presets) the sort
 /// and passes are ours ([`crate::morton`], [`crate::ploc`]): the tree obvhs' passes make
 /// from the leaves in the same order wherever no pass leaves [`crate::ploc::LONG_RUN`]
-/// nodes in a row unmerged, and no quadratic build or chain where one does. Wider searches are obvhs' `PlocBuilder`, the tree its `build` gives
-/// for those boxes.
+/// nodes in a row unmerged, and no quadratic build or chain where one does. Wider
+/// searches are obvhs' `PlocBuilder`, the tree its `build` gives for those boxes.
 ///
 /// The leaves are made here straight from `box_of`, in parallel. (`build` wants a list of
 /// boxes, which for a million triangles is 32 MB written and read once, and from 500k

@@ -54,12 +54,6 @@ pub fn sorted_leaves(leaves: &[Bvh2Node], total: Aabb) -> Vec<Bvh2Node> {
     let share = count
         .div_ceil(rayon::current_num_threads())
         .max(PARALLEL_MIN);
-    // Gathered in parallel, which also spreads the new array's first page touches.
-    let gather = |order: &[Code]| -> Vec<Bvh2Node> {
-        (order.par_iter().with_min_len(PARALLEL_MIN))
-            .map(|code| leaves[code.index as usize])
-            .collect()
-    };
 
     // Each share's codes, in the leaves' order; the bits in which they differ from the
     // first leaf's; and how many fall in each bucket of the codes' top bits, which is
@@ -157,7 +151,10 @@ pub fn sorted_leaves(leaves: &[Bvh2Node], total: Aabb) -> Vec<Bvh2Node> {
     (buckets.into_par_iter().with_min_len(16)).for_each_init(Vec::new, |scratch, codes| {
         sort_bucket(codes, scratch, shift)
     });
-    gather(&bucketed)
+    // Gathered in parallel, which also spreads the new array's first page touches.
+    (bucketed.par_iter().with_min_len(PARALLEL_MIN))
+        .map(|code| leaves[code.index as usize])
+        .collect()
 }
 
 /// Sorts `codes`, which agree on their bits from `unsorted` up, by code, keeping the order
@@ -262,8 +259,8 @@ mod tests {
             })
             .collect();
         let copies = vec![Aabb::new(Vec3A::ZERO, Vec3A::ONE); count];
-        // The far corner makes every other centre fall in the first cell of 2^-18 per
-        // axis: their codes agree in their top 54 bits.
+        // With the far corner in the box, every other centre lies in the first four of
+        // the 2^21 steps per axis: their codes agree in all but their lowest six bits.
         let cluster = (0..count)
             .map(|i| match i {
                 0 => point(Vec3A::splat(1e6)),
