@@ -60,7 +60,7 @@ pub fn sorted_leaves(leaves: &[Bvh2Node], total: Aabb) -> Vec<Bvh2Node> {
     // the first split wherever the leaves spread over their whole box.
     let first = leaves.first().map_or(0, code_of);
     let top = |code: &Code| (code.code >> (CODE_BITS - TOP_BITS)) as usize;
-    let shares: Vec<(Vec<Code>, u64, Vec<usize>)> = (leaves.par_chunks(share).enumerate())
+    let mut shares: Vec<(Vec<Code>, u64, Vec<usize>)> = (leaves.par_chunks(share).enumerate())
         .map(|(n, chunk)| {
             let mut differ = 0;
             let mut counts = vec![0; 1 << TOP_BITS];
@@ -92,7 +92,9 @@ pub fn sorted_leaves(leaves: &[Bvh2Node], total: Aabb) -> Vec<Bvh2Node> {
     let shift = unsorted - width;
     let bucket = |code: &Code| ((code.code >> shift) as usize) & ((1 << width) - 1);
     let counts: Vec<Vec<usize>> = if unsorted == CODE_BITS {
-        shares.iter().map(|(_, _, counts)| counts.clone()).collect()
+        (shares.iter_mut())
+            .map(|(_, _, counts)| std::mem::take(counts))
+            .collect()
     } else {
         (shares.par_iter())
             .map(|(codes, _, _)| {

@@ -26,11 +26,11 @@ use rayon::prelude::*;
 /// Nodes left unmerged in a row by a pass's mutual choices from which the pass pairs
 /// them up in order itself (a left-over odd one stays). Long enough that real meshes do
 /// not show one (the longest seen: 23 nodes, on beast; 35 in the random boxes of
-/// `bvh::tests`), so their trees stay those of obvhs' passes. Short enough that a pass of `n` nodes
-/// leaves about `n · LONG_RUN / (LONG_RUN + 1)` at most, since runs shorter than this
-/// are kept whole only beside merged pairs: all passes together handle at most about
-/// `LONG_RUN + 1` times the leaves. Where every merge costs the same, the tree is at
-/// most `log2(n) + LONG_RUN + 1` deep.
+/// `bvh::tests`), so their trees stay those of obvhs' passes. Short enough that a pass
+/// of `n` nodes leaves about `n · LONG_RUN / (LONG_RUN + 1)` at most, since runs shorter
+/// than this are kept whole only beside merged pairs: all passes together handle at most
+/// about `LONG_RUN + 1` times the leaves. Where every merge costs the same, the tree is
+/// at most `log2(n) + LONG_RUN + 1` deep.
 pub const LONG_RUN: usize = 48;
 
 /// Elements one parallel task takes at least. A pass's choices are made, and its nodes

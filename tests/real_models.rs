@@ -175,6 +175,14 @@ fn scanned_models_get_obvhs_own_binary_tree_from_our_radius_1_passes() {
                 "{}, {preset:?}: the trees differ",
                 model.display()
             );
+            // A leaf names its primitive; obvhs keeps the list of indices it was given.
+            assert!(
+                ours.primitive_indices
+                    .iter()
+                    .copied()
+                    .eq(0..boxes.len() as u32)
+            );
+            assert_eq!(theirs.primitive_indices, order);
         }
     }
 }
