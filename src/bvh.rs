@@ -634,22 +634,29 @@ impl<T: Scalar> Bvh<T> {
         self.any_by(|node| intersect_node(node, ray, tmax).0, leaf)
     }
 
-    /// [`Bvh::any`] over the subtree under node `start` only (`0` is the root).
+    /// [`Bvh::any`] over the subtree under node `start` only (`0` is the root), which
+    /// also names where the hit was found: the node one level above the node holding the
+    /// leaf that `leaf` stopped at ([`crate::scene::HINT_LEVELS`]), or `None` when nothing
+    /// was hit. `above` stands for the node above `start` (unknown to the search; `start`
+    /// itself will do), named for a leaf held by `start` itself.
     #[inline]
     pub fn any_below(
         &self,
         start: u32,
+        above: u32,
         ray: &BoxRay<T>,
         tmax: T,
         leaf: impl FnMut(u32, u32) -> bool,
-    ) -> bool {
-        self.any_from(start, |node| intersect_node(node, ray, tmax).0, leaf)
+    ) -> Option<u32> {
+        self.any_from(start, above, |node| intersect_node(node, ray, tmax).0, leaf)
     }
 
     /// For each item, the node `levels` levels above the node whose leaf holds it (the
-    /// root where the tree is shallower): a subtree around the item, with its neighbours.
-    /// An item in several leaves gets one of them.
-    pub fn leaf_ancestors(&self, items: usize, levels: usize) -> Vec<u32> {
+    /// root where the tree is shallower): what [`Bvh::any_below`] names for a hit in that
+    /// leaf when `levels` is 1. An item in several leaves gets one of them. (The tests'
+    /// reference: the traversals find it on their way down.)
+    #[cfg(test)]
+    pub(crate) fn leaf_ancestors(&self, items: usize, levels: usize) -> Vec<u32> {
         let mut parents = vec![0u32; self.nodes.len()];
         let mut ancestors = vec![0u32; items];
         for (index, node) in self.nodes.iter().enumerate() {
@@ -678,62 +685,66 @@ impl<T: Scalar> Bvh<T> {
         node_test: impl Fn(&Node<T>) -> u32,
         leaf: impl FnMut(u32, u32) -> bool,
     ) -> bool {
-        self.any_from(0, node_test, leaf)
+        self.any_from(0, 0, node_test, leaf).is_some()
     }
 
     #[inline(always)]
     fn any_from(
         &self,
         start: u32,
+        above: u32,
         node_test: impl Fn(&Node<T>) -> u32,
         leaf: impl FnMut(u32, u32) -> bool,
-    ) -> bool {
+    ) -> Option<u32> {
         if self.nodes.is_empty() {
-            return false;
+            return None;
         }
         if self.stack_bound <= INLINE_STACK {
-            let mut stack = InlineStack::<T, INLINE_STACK>::new();
-            self.any_with(start, &mut stack, node_test, leaf)
+            let mut stack = InlineStack::<u32, INLINE_STACK>::new();
+            self.any_with(start, above, &mut stack, node_test, leaf)
         } else {
             let mut stack = Vec::with_capacity(self.stack_bound);
-            self.any_with(start, &mut stack, node_test, leaf)
+            self.any_with(start, above, &mut stack, node_test, leaf)
         }
     }
 
+    /// The any-hit loop. Each stack entry carries, beside the child, the node
+    /// [`Bvh::any_below`] names for a hit under it: an inner child's parent, or, for a
+    /// leaf, its node's parent.
     #[inline(always)]
     fn any_with(
         &self,
         start: u32,
-        stack: &mut impl Stack<T>,
+        above: u32,
+        stack: &mut impl Stack<u32>,
         node_test: impl Fn(&Node<T>) -> u32,
         mut leaf: impl FnMut(u32, u32) -> bool,
-    ) -> bool {
-        let mut current: ChildRef = start;
+    ) -> Option<u32> {
+        let (mut current, mut up): (ChildRef, u32) = (start, above);
         loop {
             if current & LEAF != 0 {
                 let (first, count) = leaf_range(current);
                 if leaf(first, count) {
-                    return true;
+                    return Some(up);
                 }
             } else {
                 let node = &self.nodes[current as usize];
                 let mut mask = node_test(node);
                 if mask != 0 {
+                    let above_child =
+                        |child: ChildRef| if child & LEAF != 0 { up } else { current };
                     let first = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
                     while mask != 0 {
                         let i = mask.trailing_zeros() as usize;
                         mask &= mask - 1;
-                        stack.push((node.children[i], T::default()));
+                        stack.push((node.children[i], above_child(node.children[i])));
                     }
-                    current = node.children[first];
+                    (current, up) = (node.children[first], above_child(node.children[first]));
                     continue;
                 }
             }
-            match stack.pop() {
-                Some((child, _)) => current = child,
-                None => return false,
-            }
+            (current, up) = stack.pop()?;
         }
     }
 }

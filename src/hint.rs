@@ -8,7 +8,9 @@
 //! before (the ray above, in the renderer's 8 × 8 groups of pixels, whose rays go row by
 //! row); then the subtree around the first ([`crate::scene::HINT_LEVELS`] above its
 //! leaf), and only then the whole tree. Most hitting rays end after a block test or two or
-//! a short search instead of a descent from the root. A query that hits no triangle
+//! a short search instead of a descent from the root. The subtree's node is kept with
+//! each block: the search that found the block named it on its way down, so no table of
+//! the tree's blocks is made or read. A query that hits no triangle
 //! leaves the next one without a guess, so a run of misses pays nothing for the hint.
 //! Spheres likewise: the sphere that stopped the previous ray is tested before the
 //! spheres' tree.
@@ -17,7 +19,7 @@
 //! the traversal's own box and watertight tests over the same interval `tmin < t < tmax`,
 //! so a hinted query returns `true` only for a real hit, and when they hold none the whole
 //! tree is searched as by an unhinted query. A stale hint, or one from another scene,
-//! costs two block tests and a short search.
+//! costs two block tests and a short search (none where its node is past the tree's end).
 //!
 //! ```
 //! use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry};
@@ -38,6 +40,9 @@ pub struct AnyHitHint {
     /// [`AnyHitHint::ROWS`] queries that searched the triangles, or [`AnyHitHint::NONE`];
     /// a ring whose newest entry is at `newest`.
     slots: [u32; AnyHitHint::ROWS],
+    /// For each entry of `slots`, the node of the triangle tree whose subtree is searched
+    /// around it (see [`AnyHitHint::subtrees`]); 0, the root, when unknown.
+    subtrees: [u32; AnyHitHint::ROWS],
     newest: u8,
     /// An index into the scene's spheres in tree order, or [`AnyHitHint::NONE`].
     sphere: u32,
@@ -47,6 +52,7 @@ impl Default for AnyHitHint {
     fn default() -> AnyHitHint {
         AnyHitHint {
             slots: [AnyHitHint::NONE; AnyHitHint::ROWS],
+            subtrees: [0; AnyHitHint::ROWS],
             newest: 0,
             sphere: AnyHitHint::NONE,
         }
@@ -81,12 +87,26 @@ impl AnyHitHint {
         [previous, above.filter(|&b| Some(b) != previous)]
     }
 
-    /// Records the triangle (its slot) a search of the triangles found, or that it found
-    /// none: then the next query starts without a guess.
+    /// The subtrees around [`AnyHitHint::blocks`]' blocks, in the same order: the node
+    /// [`crate::scene::HINT_LEVELS`] above the one holding each block's leaf, as the search
+    /// that found it named it (0 when unknown: the whole tree).
     #[inline(always)]
-    pub(crate) fn remember_triangle(&mut self, slot: Option<u32>) {
+    pub(crate) fn subtrees(&self) -> [u32; 2] {
+        let newest = usize::from(self.newest);
+        [
+            self.subtrees[newest],
+            self.subtrees[(newest + 1) % AnyHitHint::ROWS],
+        ]
+    }
+
+    /// Records the triangle (its slot) a search of the triangles found, with the subtree
+    /// around it, or that it found none: then the next query starts without a guess.
+    #[inline(always)]
+    pub(crate) fn remember_triangle(&mut self, found: Option<(u32, u32)>) {
         let newest = (usize::from(self.newest) + 1) % AnyHitHint::ROWS;
-        self.slots[newest] = slot.unwrap_or(AnyHitHint::NONE);
+        let (slot, subtree) = found.unwrap_or((AnyHitHint::NONE, 0));
+        self.slots[newest] = slot;
+        self.subtrees[newest] = subtree;
         self.newest = newest as u8;
     }
 
@@ -116,16 +136,26 @@ mod tests {
         let block = |q: usize| found(q).map(|slot| (slot / BLOCK as u32) as usize);
         let mut hint = AnyHitHint::default();
         assert_eq!(hint.blocks(), [None, None]);
+        // Each found triangle comes with its subtree (here 100 + q), or none (0) after a miss.
+        let subtree = |q: usize| if q == 3 { 0 } else { 100 + q as u32 };
         for q in 0..3 * AnyHitHint::ROWS {
-            hint.remember_triangle(found(q));
+            hint.remember_triangle(found(q).map(|slot| (slot, subtree(q))));
             assert_eq!(hint.triangle_slot(), found(q), "query {q}");
-            let above = (q + 1).checked_sub(AnyHitHint::ROWS).and_then(block);
+            let back = (q + 1).checked_sub(AnyHitHint::ROWS);
+            let above = back.and_then(block);
             assert_eq!(hint.blocks(), [block(q), above], "before query {}", q + 1);
+            let above_subtree = back.map_or(0, subtree);
+            assert_eq!(
+                hint.subtrees(),
+                [subtree(q), above_subtree],
+                "query {}",
+                q + 1
+            );
         }
         // The same block twice is tested once.
         let mut hint = AnyHitHint::default();
         for _ in 0..AnyHitHint::ROWS {
-            hint.remember_triangle(Some(4 * BLOCK as u32));
+            hint.remember_triangle(Some((4 * BLOCK as u32, 1)));
         }
         assert_eq!(hint.blocks(), [Some(4), None]);
     }

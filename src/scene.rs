@@ -878,15 +878,7 @@ impl Scene {
         #[cfg(target_arch = "x86_64")]
         if self.simd {
             // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits.
-            return unsafe {
-                crate::simd::any(
-                    &self.triangles.bvh,
-                    blocks,
-                    self.triangles.hint_roots(),
-                    ray,
-                    hint,
-                )
-            };
+            return unsafe { crate::simd::any(&self.triangles.bvh, blocks, ray, hint) };
         }
         self.any_triangle_scalar(ray, hint)
     }
@@ -908,23 +900,29 @@ impl Scene {
         };
         let search = |start: u32| {
             let mut found = None;
-            self.triangles
-                .bvh
-                .any_below(start, &boxes, horizon, |first, count| {
-                    found = (first..first + count).find_map(|b| stopped(b as usize));
-                    found.is_some()
-                });
-            found
+            let subtree =
+                self.triangles
+                    .bvh
+                    .any_below(start, start, &boxes, horizon, |first, count| {
+                        found = (first..first + count).find_map(|b| stopped(b as usize));
+                        found.is_some()
+                    })?;
+            Some((found?, subtree))
         };
         // As the AVX2 path: the hint's blocks, the subtree around the first, the whole tree.
         let mut found = None;
         if let [Some(b), above] = hint.blocks()
             && b < blocks.len()
         {
-            found = stopped(b).or_else(|| above.filter(|&a| a < blocks.len()).and_then(stopped));
-            let root = self.triangles.hint_roots()[b];
-            if found.is_none() && root != 0 {
-                found = search(root);
+            let [near, above_subtree] = hint.subtrees();
+            found = stopped(b).map(|slot| (slot, near)).or_else(|| {
+                above
+                    .filter(|&a| a < blocks.len())
+                    .and_then(stopped)
+                    .map(|slot| (slot, above_subtree))
+            });
+            if found.is_none() && near != 0 && (near as usize) < self.triangles.bvh.nodes().len() {
+                found = search(near);
             }
         }
         let found = found.or_else(|| search(0));
@@ -1307,12 +1305,15 @@ impl TriangleRay {
 }
 
 /// Levels above the leaf of a hinted any-hit query's block where its second search starts
-/// (see [`crate::hint`]): the subtree under the leaf's parent node, around the hint. On
+/// (see [`crate::hint`]): the subtree under the parent of the node holding the leaf, around
+/// the hint. The any-hit searches name that node for the triangle they find, from what
+/// their stack entries carry ([`Bvh::any_below`]), so the level is built into them. On
 /// the benchmark's camera rays (`raybatch bench --models ../shared/models --only
 /// torus,ogre,bunny,nefertiti --threads 1`, `any 1`), one level is 1–3% faster than two
-/// on BENCHMARKS.md's Zen 4 host, now that leaves test two blocks at once; on its first
-/// host, before that, one level had given half the speed-up of two, and three no more
-/// than two.
+/// on BENCHMARKS.md's Zen 4 host, now that leaves test two blocks at once, and no slower
+/// on its Intel host (DEVELOPERS.md, "Not kept: climbing from the hint's subtree"); on
+/// its first host, before that, one level had given half the speed-up of two, and three
+/// no more than two.
 pub const HINT_LEVELS: usize = 1;
 
 /// The triangles of a scene, ready for rays: their tree and the blocks its leaves point
@@ -1322,11 +1323,6 @@ pub const HINT_LEVELS: usize = 1;
 pub struct TriangleTree {
     blocks: Vec<TriangleBlock>,
     bvh: Bvh<f32>,
-    /// For each block, the node [`HINT_LEVELS`] above its leaf: the subtree a hinted
-    /// any-hit query searches after the hint's own block. Made by the first any-hit
-    /// query (a pass over the tree on one thread), which `depth` and `normal` jobs never
-    /// ask.
-    hint_roots: std::sync::OnceLock<Vec<u32>>,
     /// Triangles it was built from.
     len: usize,
     preset: BuildPreset,
@@ -1339,7 +1335,6 @@ impl TriangleTree {
         TriangleTree {
             blocks,
             bvh,
-            hint_roots: std::sync::OnceLock::new(),
             len: triangles.len(),
             preset,
         }
@@ -1348,17 +1343,6 @@ impl TriangleTree {
     /// The preset the tree was built with.
     pub fn preset(&self) -> BuildPreset {
         self.preset
-    }
-
-    /// Each block's hint subtree, made by the first call.
-    fn hint_roots(&self) -> &[u32] {
-        self.hint_roots
-            .get_or_init(|| self.bvh.leaf_ancestors(self.blocks.len(), HINT_LEVELS))
-    }
-
-    /// Whether an any-hit query has made the blocks' hint subtrees yet.
-    pub fn hint_roots_made(&self) -> bool {
-        self.hint_roots.get().is_some()
     }
 
     /// Whether the AVX2 kernels' fixed stack holds any traversal of this tree.
@@ -1515,4 +1499,73 @@ fn build_spheres(spheres: &[Sphere], preset: BuildPreset) -> (Vec<Sphere>, Vec<u
     let (tree, ids) = Bvh::build_from(spheres.len(), box_of, params, LeafCost::ONE_BY_ONE);
     let order = ids.iter().map(|&p| spheres[p as usize]).collect();
     (order, ids, tree)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_hinted_search_names_the_subtree_above_the_leaf_it_stopped_at() {
+        // Rays from outside a torus toward its triangles, each query hinted by the one
+        // before, on both the AVX2 and the scalar paths. After every hit, the subtree the
+        // hint keeps for the found block must be the node `HINT_LEVELS` above the node
+        // holding its leaf, as a walk of the whole tree finds it
+        // (`Bvh::leaf_ancestors`); a search of the hint's own subtree names that node
+        // itself for a leaf the node holds.
+        let torus = crate::procedural::torus(1.0, 0.35, 96, 40);
+        let triangles: Vec<[[f32; 3]; 3]> = torus
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| torus.positions[i as usize]))
+            .collect();
+        let mut scene = Scene::build(&SceneGeometry {
+            triangles: triangles.clone(),
+            ..SceneGeometry::default()
+        });
+        let tree = scene.triangle_tree().clone();
+        let (bvh, blocks) = (tree.bvh(), tree.blocks());
+        assert!(
+            bvh.depth() >= 3,
+            "some leaves lie below the hint's subtrees"
+        );
+        let above = bvh.leaf_ancestors(blocks.len(), HINT_LEVELS);
+        let holder = bvh.leaf_ancestors(blocks.len(), 0);
+        let mut searched_subtrees = 0;
+        for simd in [true, false] {
+            scene.set_simd(simd && simd_available());
+            let mut hint = AnyHitHint::default();
+            for (i, t) in triangles.iter().enumerate() {
+                let centroid = t.iter().fold(DVec3::ZERO, |sum, v| {
+                    sum + Vec3::from_array(*v).as_dvec3() / 3.0
+                });
+                let origin = DVec3::new(3.0, 2.5, 1.5 + (i % 5) as f64 * 0.1);
+                let ray = Ray {
+                    origin,
+                    direction: (centroid - origin).normalize(),
+                    tmin: 0.0,
+                    tmax: f64::INFINITY,
+                };
+                let [near, _] = hint.subtrees();
+                let first_guess = hint.blocks()[0];
+                assert!(scene.any_hit_hinted(&ray, &mut hint), "ray {i}");
+                let block = (hint.triangle_slot().expect("a triangle stopped the ray")
+                    / BLOCK as u32) as usize;
+                let named = hint.subtrees()[0];
+                let within = first_guess.is_some() && near != 0 && holder[block] == near;
+                if within && Some(block) != first_guess {
+                    searched_subtrees += 1;
+                }
+                assert!(
+                    named == above[block] || (within && named == near),
+                    "ray {i}, simd {simd}: block {block} named {named}, not {}",
+                    above[block]
+                );
+            }
+        }
+        assert!(
+            searched_subtrees > 0,
+            "some hits held by the hint's own subtree root"
+        );
+    }
 }

@@ -1050,8 +1050,9 @@ pub(crate) fn prefetch_child(nodes: &[Node<f32>], blocks: &[TriangleBlock], chil
 
 /// Any-hit traversal: whether some triangle has `tmin < t < tmax`. The hint's blocks are
 /// tested first (the previous query's, then, out of line, the one [`AnyHitHint::ROWS`]
-/// queries back), then the subtree around the first (under `hint_roots[block]`), then the
-/// whole tree; the hint then names the triangle found, or nothing.
+/// queries back), then the subtree around the first (under the node kept with it in the
+/// hint), then the whole tree; the hint then names the triangle found and its subtree, or
+/// nothing.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -1059,7 +1060,6 @@ pub(crate) fn prefetch_child(nodes: &[Node<f32>], blocks: &[TriangleBlock], chil
 pub unsafe fn any(
     bvh: &Bvh<f32>,
     blocks: &[TriangleBlock],
-    hint_roots: &[u32],
     ray: &Ray,
     hint: &mut AnyHitHint,
 ) -> bool {
@@ -1081,12 +1081,13 @@ pub unsafe fn any(
         Some(b) => {
             let constants = unsafe { ray_constants(ray.direction) };
             let tri = unsafe { triangle_lanes(&ray, &constants) };
+            let [near, above] = hint.subtrees();
             if let Some(slot) = unsafe { block_hit(blocks, b as u32, &tri, ray.tmax) } {
-                hint.remember_triangle(Some(slot));
+                hint.remember_triangle(Some((slot, near)));
                 return true;
             }
             if let Some(slot) = unsafe { second_guess(hint, blocks, &tri, ray.tmax) } {
-                hint.remember_triangle(Some(slot));
+                hint.remember_triangle(Some((slot, above)));
                 return true;
             }
             Some(constants)
@@ -1110,13 +1111,15 @@ pub unsafe fn any(
     };
     let r = unsafe { lanes(&ray, &constants, triangle_lanes(&ray, &constants)) };
     let found = 'search: {
-        if let Some(b) = hinted {
-            let near = hint_roots[b];
-            if near != 0
-                && let Some(slot) = unsafe { any_below(nodes, blocks, near, &r, horizon, ray.tmax) }
-            {
-                break 'search Some(slot);
-            }
+        // The subtree around the hint's first block; a stale hint's node may be out of
+        // range, and is then not searched.
+        let near = hint.subtrees()[0];
+        if hinted.is_some()
+            && near != 0
+            && (near as usize) < nodes.len()
+            && let Some(found) = unsafe { any_below(nodes, blocks, near, &r, horizon, ray.tmax) }
+        {
+            break 'search Some(found);
         }
         unsafe { any_below(nodes, blocks, 0, &r, horizon, ray.tmax) }
     };
@@ -1159,7 +1162,9 @@ unsafe fn block_hit(
 }
 
 /// Any-hit search of the subtree under node `start`: the slot of the first triangle found
-/// with `tmin < t < tmax`, entering boxes up to `horizon`.
+/// with `tmin < t < tmax`, entering boxes up to `horizon`, and the node one level above
+/// the node holding its leaf (`start` for a leaf `start` holds), as [`Bvh::any_below`]
+/// names it.
 ///
 /// # Safety
 /// Only from a function with AVX2 enabled; the tree must fit [`STACK`].
@@ -1171,11 +1176,12 @@ unsafe fn any_below(
     r: &Lanes,
     horizon: f32,
     tmax: f32,
-) -> Option<u32> {
+) -> Option<(u32, u32)> {
     let t_far = unsafe { _mm256_set1_ps(horizon) };
-    let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
+    // Each entry: the child, and above it (bits 32–63) the node a hit under it is named by.
+    let mut stack = [const { MaybeUninit::<u64>::uninit() }; STACK];
     let mut sp = 0usize;
-    let mut current = start;
+    let (mut current, mut up) = (start, start);
     loop {
         if current & LEAF != 0 {
             let (first, count) = leaf_range(current);
@@ -1187,7 +1193,7 @@ unsafe fn any_below(
                 let (mask, _) =
                     unsafe { block_pair_test(blocks, b as usize, &r.tri8, _mm256_set1_ps(tmax)) };
                 if mask != 0 {
-                    return Some(b * BLOCK as u32 + mask.trailing_zeros());
+                    return Some((b * BLOCK as u32 + mask.trailing_zeros(), up));
                 }
                 b += 2;
             }
@@ -1195,13 +1201,18 @@ unsafe fn any_below(
             if b < end
                 && let Some(slot) = unsafe { block_hit(blocks, b, &r.tri, tmax) }
             {
-                return Some(slot);
+                return Some((slot, up));
             }
         } else {
             let node = &nodes[current as usize];
             // SAFETY: AVX2 is enabled in the caller.
             let (mut mask, _) = unsafe { node_test(node, r, t_far) };
             if mask != 0 {
+                // A leaf is named by its node's parent, an inner child by its parent.
+                let entry = |child: ChildRef| {
+                    let above = if child & LEAF != 0 { up } else { current };
+                    u64::from(above) << 32 | u64::from(child)
+                };
                 // Children in slot order: nearest first or leaves first measured slower
                 // (DEVELOPERS.md, "A single any-hit ray takes the entered children ...").
                 let first = mask.trailing_zeros() as usize;
@@ -1209,11 +1220,13 @@ unsafe fn any_below(
                 prefetch_child(nodes, blocks, node.children[first]);
                 mask &= mask - 1;
                 while mask != 0 {
-                    stack[sp] = MaybeUninit::new(node.children[mask.trailing_zeros() as usize]);
+                    stack[sp] =
+                        MaybeUninit::new(entry(node.children[mask.trailing_zeros() as usize]));
                     sp += 1;
                     mask &= mask - 1;
                 }
-                current = node.children[first];
+                let next = entry(node.children[first]);
+                (current, up) = (next as u32, (next >> 32) as u32);
                 continue;
             }
         }
@@ -1222,7 +1235,8 @@ unsafe fn any_below(
         }
         sp -= 1;
         // SAFETY: every slot below `sp` was written above.
-        current = unsafe { stack[sp].assume_init() };
+        let next = unsafe { stack[sp].assume_init() };
+        (current, up) = (next as u32, (next >> 32) as u32);
     }
 }
 

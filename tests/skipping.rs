@@ -1,8 +1,7 @@
 //! What a job does not do because its scene does not need it: no mesh read or triangle
 //! tree without meshes, no sphere tree without spheres, no closest-hit search or normals
 //! for `hit`, a mesh shared by a batch read and built once, the last job's meshes let go
-//! before its build, no any-hit hint subtrees until an any-hit query, no reinsertion in a
-//! triangle tree that too few rays will cross. (glTF images never being decoded is
+//! before its build, no reinsertion in a triangle tree that too few rays will cross. (glTF images never being decoded is
 //! `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
 
 use std::path::Path;
@@ -122,30 +121,6 @@ fn hit_asks_only_whether_anything_is_hit_all_ask_in_batches_and_only_normal_comp
         assert_eq!(counting.single.into_inner(), 0, "{integrator}");
         assert_eq!(counting.normals.into_inner() > 0, normals, "{integrator}");
     }
-}
-
-#[test]
-fn the_any_hit_hint_subtrees_are_made_by_the_first_any_hit_query_only() {
-    let dir = Dir::new();
-    dir.write("tetra.obj", TETRAHEDRON);
-    let (manifest, scene) = scene_of(&dir, &manifest("tetra.obj", 0.0, 0.0, "t.pfm"));
-    let tree = scene.triangle_tree();
-    assert!(!tree.hint_roots_made());
-    // A `depth` job asks closest hits only, and hits the tetrahedron.
-    let image = raybatch::render::render(&scene, &manifest, &|_| {}).unwrap();
-    let raybatch::image::Pixels::RgbF32(depths) = &image.pixels else {
-        unreachable!("depth jobs write PFM")
-    };
-    assert!(depths.iter().any(|&d| d > 0.0));
-    assert!(!tree.hint_roots_made());
-    let ray = Ray {
-        origin: DVec3::new(0.2, 0.2, -1.0),
-        direction: DVec3::Z,
-        tmin: 0.0,
-        tmax: f64::INFINITY,
-    };
-    assert!(scene.any_hit(&ray));
-    assert!(tree.hint_roots_made());
 }
 
 fn manifest(mesh: &str, translate: f64, camera_x: f64, output: &str) -> String {
