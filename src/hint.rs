@@ -10,10 +10,9 @@
 //! leaf), and only then the whole tree. Most hitting rays end after a block test or two or
 //! a short search instead of a descent from the root. The subtree's node is kept with
 //! each block: the search that found the block named it on its way down, so no table of
-//! the tree's blocks is made or read. A query that hits no triangle
-//! leaves the next one without a guess, so a run of misses pays nothing for the hint.
-//! Spheres likewise: the sphere that stopped the previous ray is tested before the
-//! spheres' tree.
+//! the tree's blocks is made or read. A query that hits no triangle leaves the next one
+//! without a guess, so a run of misses pays nothing for the hint. Spheres likewise: the
+//! sphere that stopped the previous ray is tested before the spheres' tree.
 //!
 //! The hint changes the work, never the answer: the blocks and the subtree are tested with
 //! the traversal's own box and watertight tests over the same interval `tmin < t < tmax`,

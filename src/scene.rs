@@ -1310,10 +1310,10 @@ impl TriangleRay {
 /// their stack entries carry ([`Bvh::any_below`]), so the level is built into them. On
 /// the benchmark's camera rays (`raybatch bench --models ../shared/models --only
 /// torus,ogre,bunny,nefertiti --threads 1`, `any 1`), one level is 1–3% faster than two
-/// on BENCHMARKS.md's Zen 4 host, now that leaves test two blocks at once, and no slower
-/// on its Intel host (DEVELOPERS.md, "Not kept: climbing from the hint's subtree"); on
-/// its first host, before that, one level had given half the speed-up of two, and three
-/// no more than two.
+/// on BENCHMARKS.md's Zen 4 host, now that leaves test two blocks at once, and 1–4% on
+/// its Intel host (DEVELOPERS.md, "Not kept: climbing from the hint's subtree"); on its
+/// first host, before that, one level had given half the speed-up of two, and three no
+/// more than two.
 pub const HINT_LEVELS: usize = 1;
 
 /// The triangles of a scene, ready for rays: their tree and the blocks its leaves point
