@@ -7,18 +7,20 @@
 //! first; if it missed, the block that stopped the ray [`AnyHitHint::ROWS`] queries
 //! before (the ray above, in the renderer's 8 × 8 groups of pixels, whose rays go row by
 //! row); then the subtree around the first ([`crate::scene::HINT_LEVELS`] above its
-//! leaf), and only then the whole tree. Most hitting rays end after a block test or two or
-//! a short search instead of a descent from the root. The subtree's node is kept with
-//! each block: the search that found the block named it on its way down, so no table of
-//! the tree's blocks is made or read. A query that hits no triangle leaves the next one
-//! without a guess, so a run of misses pays nothing for the hint. Spheres likewise: the
-//! sphere that stopped the previous ray is tested before the spheres' tree.
+//! leaf), then the one around the second, and only then the whole tree. Most hitting rays
+//! end after a block test or two or a short search instead of a descent from the root.
+//! The subtree's node is kept with each block: the search that found the block named it
+//! on its way down, so no table of the tree's blocks is made or read. A query that hits
+//! no triangle leaves the next one without a guess, so a run of misses pays nothing for
+//! the hint. Spheres likewise: the sphere that stopped the previous ray is tested before
+//! the spheres' tree.
 //!
-//! The hint changes the work, never the answer: the blocks and the subtree are tested with
+//! The hint changes the work, never the answer: the blocks and the subtrees are tested with
 //! the traversal's own box and watertight tests over the same interval `tmin < t < tmax`,
 //! so a hinted query returns `true` only for a real hit, and when they hold none the whole
 //! tree is searched as by an unhinted query. A stale hint, or one from another scene,
-//! costs two block tests and a short search (none where its node is past the tree's end).
+//! costs two block tests and at most two short searches (none where a node is past the
+//! tree's end).
 //!
 //! ```
 //! use raybatch::{AnyHitHint, Ray, Scene, SceneGeometry};

@@ -909,7 +909,7 @@ impl Scene {
                     })?;
             Some((found?, subtree))
         };
-        // As the AVX2 path: the hint's blocks, the subtree around the first, the whole tree.
+        // As the AVX2 path: the hint's blocks, the subtrees around them, the whole tree.
         let mut found = None;
         if let [Some(b), above] = hint.blocks()
             && b < blocks.len()
@@ -921,8 +921,17 @@ impl Scene {
                     .and_then(stopped)
                     .map(|slot| (slot, above_subtree))
             });
-            if found.is_none() && near != 0 && (near as usize) < self.triangles.bvh.nodes().len() {
+            let searchable =
+                |node: u32| node != 0 && (node as usize) < self.triangles.bvh.nodes().len();
+            if found.is_none() && searchable(near) {
                 found = search(near);
+            }
+            if found.is_none()
+                && above.is_some()
+                && above_subtree != near
+                && searchable(above_subtree)
+            {
+                found = search(above_subtree);
             }
         }
         let found = found.or_else(|| search(0));
@@ -1531,7 +1540,7 @@ mod tests {
         );
         let above = bvh.leaf_ancestors(blocks.len(), HINT_LEVELS);
         let holder = bvh.leaf_ancestors(blocks.len(), 0);
-        let mut searched_subtrees = 0;
+        let mut stand_ins = [[0; 2]; 2];
         for simd in [true, false] {
             scene.set_simd(simd && simd_available());
             let mut hint = AnyHitHint::default();
@@ -1546,26 +1555,33 @@ mod tests {
                     tmin: 0.0,
                     tmax: f64::INFINITY,
                 };
-                let [near, _] = hint.subtrees();
-                let first_guess = hint.blocks()[0];
+                let [near, far] = hint.subtrees();
+                let [first_guess, second_guess] = hint.blocks();
                 assert!(scene.any_hit_hinted(&ray, &mut hint), "ray {i}");
                 let block = (hint.triangle_slot().expect("a triangle stopped the ray")
                     / BLOCK as u32) as usize;
                 let named = hint.subtrees()[0];
+                // A leaf held by the root of a hint subtree searched (the first block's,
+                // then the second's) is named by that root: seen only when that search
+                // found it, so each search is shown to have run.
                 let within = first_guess.is_some() && near != 0 && holder[block] == near;
-                if within && Some(block) != first_guess {
-                    searched_subtrees += 1;
-                }
+                let within_far = second_guess.is_some() && far != 0 && holder[block] == far;
                 assert!(
-                    named == above[block] || (within && named == near),
+                    named == above[block]
+                        || (within && named == near)
+                        || (within_far && named == far),
                     "ray {i}, simd {simd}: block {block} named {named}, not {}",
                     above[block]
                 );
+                if named != above[block] {
+                    stand_ins[usize::from(named == far && !within)][usize::from(simd)] += 1;
+                }
             }
         }
+        // [first block's, second block's][scalar, AVX2]
         assert!(
-            searched_subtrees > 0,
-            "some hits held by the hint's own subtree root"
+            stand_ins.iter().flatten().all(|&n| n > 0),
+            "every subtree search found hits in leaves its root holds: {stand_ins:?}"
         );
     }
 }

@@ -1051,8 +1051,8 @@ pub(crate) fn prefetch_child(nodes: &[Node<f32>], blocks: &[TriangleBlock], chil
 /// Any-hit traversal: whether some triangle has `tmin < t < tmax`. The hint's blocks are
 /// tested first (the previous query's, then, out of line, the one [`AnyHitHint::ROWS`]
 /// queries back), then the subtree around the first (under the node kept with it in the
-/// hint), then the whole tree; the hint then names the triangle found and its subtree, or
-/// nothing.
+/// hint), then the one around the second, then the whole tree; the hint then names the
+/// triangle found and its subtree, or nothing.
 ///
 /// # Safety
 /// As for [`closest`].
@@ -1118,6 +1118,18 @@ pub unsafe fn any(
             && near != 0
             && (near as usize) < nodes.len()
             && let Some(found) = unsafe { any_below(nodes, blocks, near, &r, horizon, ray.tmax) }
+        {
+            break 'search Some(found);
+        }
+        // Then the one around its second block, when that is another: where neighbouring
+        // rays scatter (through a lens), the ray above may have hit nearer this one's hit.
+        let far = hint.subtrees()[1];
+        if hinted.is_some()
+            && hint.blocks()[1].is_some()
+            && far != near
+            && far != 0
+            && (far as usize) < nodes.len()
+            && let Some(found) = unsafe { any_below(nodes, blocks, far, &r, horizon, ray.tmax) }
         {
             break 'search Some(found);
         }
