@@ -1520,8 +1520,8 @@ mod tests {
         // before, on both the AVX2 and the scalar paths. After every hit, the subtree the
         // hint keeps for the found block must be the node `HINT_LEVELS` above the node
         // holding its leaf, as a walk of the whole tree finds it
-        // (`Bvh::leaf_ancestors`); a search of the hint's own subtree names that node
-        // itself for a leaf the node holds.
+        // (`Bvh::leaf_ancestors`); a search of one of the hint's subtrees (its first or
+        // second block's) names that subtree's node itself for a leaf the node holds.
         let torus = crate::procedural::torus(1.0, 0.35, 96, 40);
         let triangles: Vec<[[f32; 3]; 3]> = torus
             .triangles
