@@ -100,6 +100,25 @@ impl AnyHitHint {
         ]
     }
 
+    /// The subtrees a query searches, in order, once the hint's blocks have missed: the
+    /// first block's, then the second's when there is a second block. None unless the
+    /// first block is one of the `blocks` blocks of the tree at hand; none that is the
+    /// root (the whole tree is searched next anyway), searched already, or past the
+    /// tree's `nodes` nodes (a stale hint).
+    #[inline(always)]
+    pub(crate) fn subtrees_to_search(&self, blocks: usize, nodes: usize) -> [Option<u32>; 2] {
+        let [first, second] = self.blocks();
+        if first.is_none_or(|b| b >= blocks) {
+            return [None, None];
+        }
+        let [near, far] = self.subtrees();
+        let searchable = |node: u32| node != 0 && (node as usize) < nodes;
+        [
+            Some(near).filter(|&n| searchable(n)),
+            Some(far).filter(|&f| second.is_some() && f != near && searchable(f)),
+        ]
+    }
+
     /// Records the triangle (its slot) a search of the triangles found, with the subtree
     /// around it, or that it found none: then the next query starts without a guess.
     #[inline(always)]

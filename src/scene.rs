@@ -921,17 +921,9 @@ impl Scene {
                     .and_then(stopped)
                     .map(|slot| (slot, above_subtree))
             });
-            let searchable =
-                |node: u32| node != 0 && (node as usize) < self.triangles.bvh.nodes().len();
-            if found.is_none() && searchable(near) {
-                found = search(near);
-            }
-            if found.is_none()
-                && above.is_some()
-                && above_subtree != near
-                && searchable(above_subtree)
-            {
-                found = search(above_subtree);
+            let subtrees = hint.subtrees_to_search(blocks.len(), self.triangles.bvh.nodes().len());
+            for subtree in subtrees.into_iter().flatten() {
+                found = found.or_else(|| search(subtree));
             }
         }
         let found = found.or_else(|| search(0));

@@ -1111,24 +1111,16 @@ pub unsafe fn any(
     };
     let r = unsafe { lanes(&ray, &constants, triangle_lanes(&ray, &constants)) };
     let found = 'search: {
-        // The subtree around the hint's first block; a stale hint's node may be out of
-        // range, and is then not searched.
-        let near = hint.subtrees()[0];
-        if hinted.is_some()
-            && near != 0
-            && (near as usize) < nodes.len()
+        // The subtrees around the hint's blocks (the second's too: where neighbouring rays
+        // scatter, through a lens, the ray above may have hit nearer this one's hit). Each
+        // search written out: a loop over the two measured slower.
+        let [near, far] = hint.subtrees_to_search(blocks.len(), nodes.len());
+        if let Some(near) = near
             && let Some(found) = unsafe { any_below(nodes, blocks, near, &r, horizon, ray.tmax) }
         {
             break 'search Some(found);
         }
-        // Then the one around its second block, when that is another: where neighbouring
-        // rays scatter (through a lens), the ray above may have hit nearer this one's hit.
-        let far = hint.subtrees()[1];
-        if hinted.is_some()
-            && hint.blocks()[1].is_some()
-            && far != near
-            && far != 0
-            && (far as usize) < nodes.len()
+        if let Some(far) = far
             && let Some(found) = unsafe { any_below(nodes, blocks, far, &r, horizon, ray.tmax) }
         {
             break 'search Some(found);
