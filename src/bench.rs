@@ -149,7 +149,8 @@ struct TraceScene {
     vfov: f64,
     size: (u32, u32),
     /// A thin lens focused on `target`, of this radius: each camera ray then starts at its
-    /// own point of the lens, so a group's rays share no origin.
+    /// own point of the lens (of the lens grid's first cell, where the lens job's first
+    /// sample takes it), so a group's rays share no origin.
     lens_radius: Option<f64>,
 }
 
@@ -187,8 +188,8 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
             scenes.push(Box::new(move || mesh_scene(&name, &file, (width, height))));
         }
         // The same view through the lens job's lens, focused on the torus's centre: one
-        // ray a pixel, as a render's first sample, so the rays are the pinhole's but for
-        // their origins.
+        // ray a pixel, from the lens point of the lens job's first sample, so the rays
+        // are the pinhole's but for their origins.
         if wanted(&lens_name) {
             let file = file.clone();
             scenes.push(Box::new(move || {
@@ -394,12 +395,14 @@ fn camera_rays(scene: &TraceScene) -> Vec<Ray> {
         focus_distance: (scene.target - scene.eye).length(),
     });
     let camera = Camera::new(&CameraDesc { frame, lens }, w, h);
-    // Lens points as a render's first sample takes them (the pinhole ignores them).
+    // Lens points as the lens job's first sample takes them (the pinhole ignores them):
+    // stratified, each from the lens grid's first cell.
     let sampler = Sampler::new(&SamplerDesc {
-        kind: SamplerKind::Independent,
-        spp: 1,
+        kind: SamplerKind::Stratified,
+        spp: LENS_JOB.spp,
         seed: 1,
-    });
+    })
+    .with_lens(lens.is_some());
     let side = crate::render::PACKET_SIDE;
     let mut pixels: Vec<(u32, u32)> = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).collect();
     pixels.sort_by_key(|&(x, y)| (y / side, x / side, y % side, x % side));

@@ -35,7 +35,7 @@ pub struct View {
 impl View {
     pub fn new(manifest: &Manifest) -> View {
         let camera = Camera::new(&manifest.camera, manifest.width, manifest.height);
-        let sampler = Sampler::new(&manifest.sampler);
+        let sampler = Sampler::new(&manifest.sampler).with_lens(camera.has_lens());
         let screen = sampler.fixed_offset().map(|(sx, sy)| {
             (
                 (0..manifest.width)
@@ -372,6 +372,10 @@ mod tests {
                 r#"{"type": "independent", "spp": 4, "seed": 9}"#,
                 r#", "aperture": 0.2, "focus_distance": 3"#,
             ),
+            (
+                r#"{"type": "stratified", "spp": 6, "seed": 2}"#,
+                r#", "aperture": 0.2, "focus_distance": 3"#,
+            ),
         ] {
             let text = format!(
                 r#"{{"image": {{"width": 19, "height": 11}}, "output": "o.pfm", {camera}{lens}}},
@@ -411,8 +415,8 @@ mod tests {
     #[test]
     fn rays_of_a_group_are_the_rays_one_by_one() {
         // Fixed offsets from the tables, random and stratified offsets, and a lens with
-        // the centre sample and with random samples, for groups of every size up to a
-        // packet's.
+        // the centre sample, with random samples and with stratified ones, for groups of
+        // every size up to a packet's.
         let camera = r#""camera": {"look_from": [1, 2, 3], "look_at": [0, 0.5, 0], "vfov": 50"#;
         let manifests = [
             format!(r#"{{"image": {{"width": 37, "height": 23}}, {camera}}}}}"#),
@@ -430,6 +434,10 @@ mod tests {
             format!(
                 r#"{{"image": {{"width": 37, "height": 23}}, {camera}, "aperture": 0.2, "focus_distance": 3}},
                     "sampler": {{"type": "independent", "spp": 3, "seed": 5}}}}"#
+            ),
+            format!(
+                r#"{{"image": {{"width": 37, "height": 23}}, {camera}, "aperture": 0.2, "focus_distance": 3}},
+                    "sampler": {{"type": "stratified", "spp": 6, "seed": 2}}}}"#
             ),
         ];
         for text in &manifests {
