@@ -12,11 +12,16 @@ use crate::image::Image;
 use crate::integrator::{DepthIntegrator, HitIntegrator, Integrator, NormalIntegrator};
 use crate::manifest::{IntegratorDesc, Manifest};
 use crate::ray::Ray;
-use crate::sampler::Sampler;
+use crate::sampler::{CellShuffle, MOST_LENS_CELLS, Sampler};
 use crate::scene::Tracer;
 
 /// Side of the square tiles, in pixels; also the height of a parallel band.
 pub const TILE: u32 = 16;
+
+/// A group's pixels `(x, y0 + dy)`, their first row `y0`, their [`View::pixel_hashes`] and
+/// their [`View::shuffles`] (empty where the view does not stratify the lens), for
+/// [`View::rays_hashed`].
+pub type HashedGroup<'a> = (&'a [(u32, u32)], u32, &'a [u64; GROUP], &'a [CellShuffle]);
 
 /// Everything besides the scene that decides a pixel. Made from a manifest, and not
 /// changed after: the tables below follow from the camera and sampler.
@@ -99,7 +104,13 @@ impl View {
             return;
         }
         let hashes = self.pixel_hashes(pixels, y0);
-        self.rays_hashed((pixels, y0, &hashes), s, out);
+        if self.sampler.stratifies_lens() {
+            let mut shuffles = [[0; MOST_LENS_CELLS as usize]; GROUP];
+            self.shuffles(&hashes[..pixels.len()], &mut shuffles);
+            self.rays_hashed((pixels, y0, &hashes, &shuffles), s, out);
+        } else {
+            self.rays_hashed((pixels, y0, &hashes, &[]), s, out);
+        }
     }
 
     /// The sampler's hashes of a group's pixels `(x, y0 + dy)`, which stay the same
@@ -116,13 +127,27 @@ impl View {
         hashes
     }
 
-    /// [`View::rays`] of a group of pixels, given their [`View::pixel_hashes`].
+    /// Each pixel's shuffle of offset cells through a stratified lens, from its
+    /// [`View::pixel_hashes`], into `out[i]`: made once for all of a group's samples, and
+    /// only where [`View::stratifies_lens`].
+    pub fn shuffles(&self, hashes: &[u64], out: &mut [CellShuffle; GROUP]) {
+        self.sampler.shuffles(hashes, out);
+    }
+
+    /// Whether [`View::rays_hashed`] needs the pixels' [`View::shuffles`].
+    pub fn stratifies_lens(&self) -> bool {
+        self.sampler.stratifies_lens()
+    }
+
+    /// [`View::rays`] of a group of pixels, given their [`View::pixel_hashes`] and, where
+    /// [`View::stratifies_lens`], their [`View::shuffles`] (otherwise not read).
     ///
     /// # Panics
-    /// If `pixels` holds more than [`GROUP`].
+    /// If `pixels` holds more than [`GROUP`], or if the lens is stratified and `shuffles`
+    /// holds fewer than `pixels`.
     pub fn rays_hashed(
         &self,
-        (pixels, y0, hashes): (&[(u32, u32)], u32, &[u64; GROUP]),
+        (pixels, y0, hashes, shuffles): HashedGroup,
         s: u32,
         out: &mut [Ray],
     ) {
@@ -144,7 +169,7 @@ impl View {
                 let lens = has_lens.then_some(&mut lens[..]);
                 let hashes = &hashes[..n];
                 self.sampler
-                    .group(hashes, s, (&mut u[..], &mut v[..]), lens);
+                    .group((hashes, shuffles), s, (&mut u[..], &mut v[..]), lens);
                 self.camera
                     .screen_coordinates(pixels, y0, &mut u[..n], &mut v[..n]);
             }
@@ -293,6 +318,7 @@ pub fn render_with<T: Tracer, I: Integrator>(
         let mut rays = [unused; GROUP];
         let mut values = [[0.0f64; 3]; GROUP];
         let mut pixels = [(0u32, 0u32); GROUP];
+        let mut shuffles = [[0; MOST_LENS_CELLS as usize]; GROUP];
         for tile in groups(width, rows) {
             let n = tile.pixels(&mut pixels);
             if spp == 1 {
@@ -303,8 +329,11 @@ pub fn render_with<T: Tracer, I: Integrator>(
             }
             let mut sums = [[0.0f64; 3]; GROUP];
             let hashes = view.pixel_hashes(&pixels[..n], band.y0);
+            view.shuffles(&hashes[..n], &mut shuffles);
+            let shuffles = &shuffles[..if view.stratifies_lens() { n } else { 0 }];
             for s in 0..spp {
-                view.rays_hashed((&pixels[..n], band.y0, &hashes), s, &mut rays[..n]);
+                let numbers = (&pixels[..n], band.y0, &hashes, shuffles);
+                view.rays_hashed(numbers, s, &mut rays[..n]);
                 integrator.values(scene, &rays[..n], &mut values[..n]);
                 for (sum, value) in sums.iter_mut().zip(&values[..n]) {
                     for c in 0..3 {

@@ -9,13 +9,14 @@
 //! Every random number is a hash of `(seed, pixel, sample, dimension)`, so a pixel's
 //! samples do not depend on which thread renders it or in what order.
 //!
-//! Through a lens ([`Sampler::with_lens`]), the stratified sampler stratifies the lens
-//! too: sample `s` of every pixel takes a point of the lens grid's cell `s`, and each pixel
-//! pairs its offset cells with the lens cells by a random permutation of its own, as a
-//! shuffle of each pixel's cells pairs them in pbrt's stratified sampler. A pixel still
-//! meets every cell of both grids once, every offset cell is as likely as another to meet
-//! a given lens cell (so a pixel's mean stays unbiased), and an 8 × 8 group's rays of one
-//! sample leave from one part of the lens, so they stay together.
+//! Through a lens ([`Sampler::with_lens`]), with at most [`MOST_LENS_CELLS`] samples per
+//! pixel, the stratified sampler stratifies the lens too: sample `s` of every pixel takes a
+//! point of the lens grid's cell `s`, and each pixel pairs its offset cells with the lens
+//! cells by a shuffle of its own ([`Sampler::shuffles`]), as pbrt's stratified sampler
+//! shuffles each pixel's cells. A pixel still meets every cell of both grids once, every
+//! offset cell is as likely as another to meet a given lens cell (so a pixel's mean stays
+//! unbiased), and an 8 × 8 group's rays of one sample leave from one part of the lens, so
+//! they stay together.
 
 use crate::manifest::{SamplerDesc, SamplerKind};
 
@@ -26,8 +27,14 @@ pub const CENTER: (f64, f64) = (0.5, 0.5);
 const DIM_PIXEL: u64 = 0;
 const DIM_LENS: u64 = 2;
 
-/// Pixels a group loop takes per phase where it works in phases: a render's group.
-const CHUNK: usize = 64;
+/// Most samples per pixel for which the stratified sampler stratifies the lens: a pixel's
+/// shuffle of cells ([`CellShuffle`]) then fits in bytes. With more, lens points are
+/// random, as with the `independent` sampler.
+pub const MOST_LENS_CELLS: u32 = 256;
+
+/// A pixel's offset cell for each of its samples through a stratified lens
+/// ([`Sampler::shuffles`]): entry `s` is sample `s`'s cell.
+pub type CellShuffle = [u8; MOST_LENS_CELLS as usize];
 
 #[derive(Debug, Clone, Copy)]
 pub struct Sampler {
@@ -90,14 +97,45 @@ impl Sampler {
     }
 
     /// The sampler for a camera with a lens (`lens`) or a pinhole (the default). With a
-    /// lens, the stratified sampler puts sample `s`'s lens point in the lens grid's cell
-    /// `s` and sends each pixel's offset cells through a permutation of the pixel's own (the
-    /// module's doc); a pinhole ignores lens points, and its offsets stay those of [`Sampler::new`].
-    /// The other kinds are the same either way.
+    /// lens and at most [`MOST_LENS_CELLS`] samples, the stratified sampler puts sample
+    /// `s`'s lens point in the lens grid's cell `s` and shuffles each pixel's offset cells
+    /// (the module's doc); a pinhole ignores lens points, and its offsets stay those of
+    /// [`Sampler::new`]. The other kinds are the same either way.
     pub fn with_lens(self, lens: bool) -> Sampler {
         Sampler {
-            lens_strata: lens && self.kind == SamplerKind::Stratified,
+            // One sample's single cell is the whole lens: its numbers are the same either way.
+            lens_strata: lens
+                && self.kind == SamplerKind::Stratified
+                && (2..=MOST_LENS_CELLS).contains(&self.spp),
             ..self
+        }
+    }
+
+    /// Whether the lens is stratified, so that [`Sampler::group`] needs each pixel's
+    /// [`Sampler::shuffles`].
+    pub fn stratifies_lens(&self) -> bool {
+        self.lens_strata
+    }
+
+    /// Each pixel's shuffle of offset cells, for the pixels whose
+    /// [hashes](Sampler::pixel_hashes) are `pixel_hashes`, into `out[i]`: made once for all
+    /// of a group's samples. Nothing unless the lens is stratified.
+    ///
+    /// # Panics
+    /// If `out` is shorter than `pixel_hashes`.
+    pub fn shuffles(&self, pixel_hashes: &[u64], out: &mut [CellShuffle]) {
+        if !self.lens_strata {
+            return;
+        }
+        let out = &mut out[..pixel_hashes.len()];
+        match self.loops {
+            // SAFETY: `loops` names only features the CPU has.
+            #[cfg(target_arch = "x86_64")]
+            Loops::Avx512 => unsafe { shuffles_avx512(pixel_hashes, self.spp, out) },
+            // SAFETY: as above.
+            #[cfg(target_arch = "x86_64")]
+            Loops::Avx2 => unsafe { shuffles_avx2(pixel_hashes, self.spp, out) },
+            _ => shuffle_pixels(pixel_hashes, self.spp, out),
         }
     }
 
@@ -155,14 +193,18 @@ impl Sampler {
     }
 
     /// [`Sampler::pixel_offset`] of sample `s` for each pixel whose
-    /// [hash](Sampler::pixel_hashes) is `pixel_hashes[i]`, into `(u[i], v[i])`, and with
-    /// `lens`, [`Sampler::lens`] into `lens[i]`: the same numbers, a group at a time. The
-    /// stratum is found once for the group, and the loop is compiled for AVX-512 (whose
-    /// 64-bit products hash eight pixels at once) or AVX2 (four, from 32-bit products)
-    /// where the CPU has it.
+    /// [hash](Sampler::pixel_hashes) is `pixel_hashes[i]` (and, where the lens is
+    /// stratified, whose [shuffle](Sampler::shuffles) is `shuffles[i]`; otherwise
+    /// `shuffles` is not read), into `(u[i], v[i])`, and with `lens`, [`Sampler::lens`]
+    /// into `lens[i]`: the same numbers, a group at a time. The stratum is found once for
+    /// the group, and the loop is compiled for AVX-512 (whose 64-bit products hash eight
+    /// pixels at once) or AVX2 (four, from 32-bit products) where the CPU has it.
+    ///
+    /// # Panics
+    /// If the lens is stratified and `shuffles` is shorter than `pixel_hashes`.
     pub fn group(
         &self,
-        pixel_hashes: &[u64],
+        (pixel_hashes, shuffles): (&[u64], &[CellShuffle]),
         s: u32,
         (u, v): (&mut [f64], &mut [f64]),
         lens: Option<&mut [(f64, f64)]>,
@@ -177,7 +219,12 @@ impl Sampler {
             }
             return;
         }
-        let group = self.group_of(pixel_hashes, s);
+        let shuffles = if self.lens_strata {
+            &shuffles[..n]
+        } else {
+            &[]
+        };
+        let group = self.group_of((pixel_hashes, shuffles), s);
         match self.loops {
             // SAFETY: `loops` names only features the CPU has.
             #[cfg(target_arch = "x86_64")]
@@ -191,9 +238,14 @@ impl Sampler {
 
     /// Sample `s` of the pixels whose hashes are `pixel_hashes`, for [`Sampler::group`].
     #[inline(always)]
-    fn group_of<'a>(&self, pixel_hashes: &'a [u64], s: u32) -> Group<'a> {
+    fn group_of<'a>(
+        &self,
+        (pixel_hashes, shuffles): (&'a [u64], &'a [CellShuffle]),
+        s: u32,
+    ) -> Group<'a> {
         Group {
             pixel_hashes,
+            shuffles,
             s,
             stratum: self.stratum(s),
             lens_grid: self.lens_grid(),
@@ -211,7 +263,9 @@ impl Sampler {
     fn offset_from(&self, pixel: u64, s: u32) -> (f64, f64) {
         match (self.stratum(s), self.lens_grid()) {
             (Some(_), Some(grid)) => {
-                offset_in(cell(permutation(s, grid[0], pixel), grid), pixel, s)
+                let mut cells = [0; MOST_LENS_CELLS as usize];
+                shuffle(pixel, grid[0], &mut cells);
+                offset_in(cell(u32::from(cells[s as usize]), grid), pixel, s)
             }
             (Some(cell), None) => offset_in(cell, pixel, s),
             (None, _) => unit_offset(pixel, s),
@@ -251,12 +305,14 @@ impl Sampler {
 struct Group<'a> {
     /// Each pixel's hash ([`Sampler::pixel_hashes`]).
     pixel_hashes: &'a [u64],
+    /// Each pixel's shuffle of offset cells where the lens is stratified; empty otherwise.
+    shuffles: &'a [CellShuffle],
     s: u32,
     /// For the stratified sampler, the sample's cell: its column and row, and the grid's
     /// columns and rows.
     stratum: Option<[f64; 4]>,
     /// With the lens stratified, the grid's cells and columns: the cell is then the lens
-    /// point's, and each pixel's offset takes the cell its own [`permutation`] sends it to.
+    /// point's, and each pixel's offset takes the cell its own shuffle gives the sample.
     lens_grid: Option<[u32; 2]>,
 }
 
@@ -286,6 +342,50 @@ unsafe fn hashes_avx2(seed_hash: u64, pixels: (&[(u32, u32)], u32), out: &mut [u
 fn hash_pixels(seed_hash: u64, (pixels, y0): (&[(u32, u32)], u32), out: &mut [u64]) {
     for (&(x, dy), out) in pixels.iter().zip(out) {
         *out = hash_pixel(seed_hash, x, y0 + dy);
+    }
+}
+
+/// [`Sampler::shuffles`] compiled for AVX-512.
+///
+/// # Safety
+/// The CPU must have AVX-512 F, DQ and VL.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl")]
+unsafe fn shuffles_avx512(pixel_hashes: &[u64], n: u32, out: &mut [CellShuffle]) {
+    shuffle_pixels(pixel_hashes, n, out);
+}
+
+/// [`Sampler::shuffles`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn shuffles_avx2(pixel_hashes: &[u64], n: u32, out: &mut [CellShuffle]) {
+    shuffle_pixels(pixel_hashes, n, out);
+}
+
+/// [`shuffle`] of each pixel whose hash is `pixel_hashes[i]` into `out[i]`, the pixels in
+/// step: each step's choices first, a loop over the pixels that takes several at once,
+/// then its swaps.
+#[inline(always)]
+fn shuffle_pixels(pixel_hashes: &[u64], n: u32, out: &mut [CellShuffle]) {
+    const CHUNK: usize = 64;
+    for (hashes, out) in pixel_hashes.chunks(CHUNK).zip(out.chunks_mut(CHUNK)) {
+        let (mut keys, mut picks) = ([0u64; CHUNK], [0u32; CHUNK]);
+        let (keys, picks) = (&mut keys[..hashes.len()], &mut picks[..hashes.len()]);
+        for ((&p, key), cells) in hashes.iter().zip(keys.iter_mut()).zip(out.iter_mut()) {
+            *key = shuffle_key(p);
+            unshuffled(n, cells);
+        }
+        for j in (1..n).rev() {
+            for (&key, pick) in keys.iter().zip(picks.iter_mut()) {
+                *pick = shuffle_pick(key, j);
+            }
+            for (cells, &k) in out.iter_mut().zip(&*picks) {
+                cells.swap(j as usize, k as usize);
+            }
+        }
     }
 }
 
@@ -322,6 +422,7 @@ unsafe fn group_avx2(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&
 fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut [(f64, f64)]>) {
     let &Group {
         pixel_hashes,
+        shuffles,
         s,
         stratum,
         lens_grid,
@@ -329,23 +430,9 @@ fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut 
     // The kind chosen once, outside the loops.
     match (stratum, lens_grid) {
         (Some(_), Some(grid)) => {
-            // Each round of the pixels' permutations a loop over the pixels, which then takes
-            // several at once.
-            let chunks = pixel_hashes.chunks(CHUNK).zip(u.chunks_mut(CHUNK));
-            for ((hashes, u), v) in chunks.zip(v.chunks_mut(CHUNK)) {
-                let (mut keys, mut cells) = ([0u64; CHUNK], [s; CHUNK]);
-                let (keys, cells) = (&mut keys[..hashes.len()], &mut cells[..hashes.len()]);
-                for (&p, key) in hashes.iter().zip(keys.iter_mut()) {
-                    *key = permutation_key(p);
-                }
-                for round in 0..permutation_rounds(grid[0]) {
-                    for (&key, c) in keys.iter().zip(cells.iter_mut()) {
-                        *c = swap_or_not(*c, grid[0], key, round);
-                    }
-                }
-                for (((&p, &c), u), v) in hashes.iter().zip(&*cells).zip(u).zip(v) {
-                    (*u, *v) = offset_in(cell_at(c, grid), p, s);
-                }
+            let offsets = pixel_hashes.iter().zip(shuffles).zip(u).zip(v);
+            for (((&p, cells), u), v) in offsets {
+                (*u, *v) = offset_in(cell_at(u32::from(cells[s as usize]), grid), p, s);
             }
         }
         (Some(cell), None) => {
@@ -413,8 +500,9 @@ fn cell(i: u32, [cells, columns]: [u32; 2]) -> [f64; 4] {
 }
 
 /// [`cell`] by float arithmetic, which the group loops take several pixels at a time: the
-/// same numbers, as every quotient below 2^32 of integers is at least 2^-32 from the next
-/// integer up, far more than its rounding.
+/// same numbers. A grid has at most 2^16 columns (their square is at most its cells), so a
+/// quotient `i / columns` short of an integer is short by at least 2^-16, far more than
+/// its rounding (below 2^32 · 2^-53).
 #[inline(always)]
 fn cell_at(i: u32, [cells, columns]: [u32; 2]) -> [f64; 4] {
     let (i, columns) = (small_integer(i), small_integer(columns));
@@ -435,44 +523,39 @@ fn small_integer(k: u32) -> f64 {
     f64::from_bits(TWO_52 | u64::from(k)) - f64::from_bits(TWO_52)
 }
 
-/// Where the pixel whose hash is `pixel` sends `i` (below `n`) in a permutation of `0..n`
-/// of its own: [`permutation_rounds`] rounds of [`swap_or_not`] (Hoang, Morris and Rogaway,
-/// "An enciphering scheme based on a card shuffle", 2012). Each round is its own inverse,
-/// so the whole is a permutation for every `n`, with no values to skip.
+/// The pixel's shuffle of the cells `0..n` (`n` at most [`MOST_LENS_CELLS`]), into
+/// `out[..n]`: a Fisher–Yates shuffle, each step's choice from a hash of the pixel and the
+/// step, so that every order is as likely as another (to within `n / 2^32`).
 #[inline(always)]
-fn permutation(i: u32, n: u32, pixel: u64) -> u32 {
-    let key = permutation_key(pixel);
-    (0..permutation_rounds(n)).fold(i, |i, round| swap_or_not(i, n, key, round))
+fn shuffle(pixel: u64, n: u32, out: &mut CellShuffle) {
+    let key = shuffle_key(pixel);
+    unshuffled(n, out);
+    for j in (1..n).rev() {
+        out.swap(j as usize, shuffle_pick(key, j) as usize);
+    }
 }
 
-/// A pixel's key for [`swap_or_not`].
+/// The key of a pixel's [`shuffle`].
 #[inline(always)]
-fn permutation_key(pixel: u64) -> u64 {
+fn shuffle_key(pixel: u64) -> u64 {
     // Bit 63 set: `(s << 16) | dimension` of a sample's number never has it.
     mix(pixel ^ (1 << 63))
 }
 
-/// Rounds for a permutation of `0..n`: twice the bits of `n − 1`, and four. Fewer leave
-/// some pairs of values (where two samples are sent together) more likely than others: in
-/// a model of these rounds counting a thousand pixels per pair, 8 rounds put pairs of 25,
-/// 32 and 64 values up to 27%, 28% and 56% from their share, 12 rounds within 13% (the
-/// counts' own noise). The tests check pairs of up to 16 values.
+/// `0..n` in order, into `out[..n]`.
 #[inline(always)]
-fn permutation_rounds(n: u32) -> u32 {
-    2 * (u32::BITS - n.saturating_sub(1).leading_zeros()) + 4
+fn unshuffled(n: u32, out: &mut CellShuffle) {
+    for (i, cell) in out.iter_mut().take(n as usize).enumerate() {
+        *cell = i as u8;
+    }
 }
 
-/// Round `round` of a pixel's permutation of `0..n` (`key` from [`permutation_key`]): `i`
-/// and its partner `(k − i) mod n`, for the round's `k`, swap places or not, as a hash of
-/// the round and of the larger of the two says. Branch-free.
+/// Step `j` of a [`shuffle`] under `key`: the place in `0..=j` that place `j` swaps with.
 #[inline(always)]
-fn swap_or_not(i: u32, n: u32, key: u64, round: u32) -> u32 {
-    let h = mix(key.wrapping_add(u64::from(round).wrapping_mul(0x9e37_79b9_7f4a_7c15)));
-    // A 32-bit fraction times `n`, its top 32 bits: in `0..n`.
-    let k = (((h & 0xffff_ffff) * u64::from(n)) >> 32) as u32;
-    let partner = if k >= i { k - i } else { k + n - i };
-    let swap = ((h >> 32) as u32 ^ i.max(partner)).wrapping_mul(0x9e37_79b1) >> 31;
-    if swap != 0 { partner } else { i }
+fn shuffle_pick(key: u64, j: u32) -> u32 {
+    let h = mix(key.wrapping_add(u64::from(j).wrapping_mul(0x9e37_79b9_7f4a_7c15)));
+    // A 32-bit fraction times `j + 1`, its top 32 bits.
+    (((h & 0xffff_ffff) * u64::from(j + 1)) >> 32) as u32
 }
 
 /// The number of dimension `dimension` of sample `s`, from its pixel's hash.
@@ -607,19 +690,42 @@ mod tests {
     }
 
     #[test]
-    fn a_pixel_s_permutation_sends_every_number_once() {
+    fn a_pixel_s_shuffle_holds_every_cell_once() {
         let mut random = crate::test_random::XorShift::new(5);
-        for n in (1..=70).chain([255, 256, 257, 1000, 4096]) {
+        for n in (1..=70).chain([127, 128, 255, 256]) {
             for _ in 0..20 {
                 let pixel = random.next_u64();
+                let mut cells = [7; MOST_LENS_CELLS as usize];
+                shuffle(pixel, n, &mut cells);
                 let mut seen = vec![false; n as usize];
-                for i in 0..n {
-                    let j = permutation(i, n, pixel);
-                    assert!(j < n && !seen[j as usize], "{n}: {i} -> {j}");
-                    seen[j as usize] = true;
+                for &c in &cells[..n as usize] {
+                    assert!(u32::from(c) < n && !seen[c as usize], "{n}: {c} again");
+                    seen[c as usize] = true;
                 }
+                // Nothing past the cells is written.
+                assert!(cells[n as usize..].iter().all(|&c| c == 7));
             }
         }
+    }
+
+    #[test]
+    fn the_lens_is_stratified_from_two_samples_to_the_most_cells() {
+        // One sample's numbers are the same either way; past the most cells, a shuffle
+        // would not fit in bytes, and lens points are random.
+        for (spp, stratified) in [(1, false), (2, true), (256, true), (257, false)] {
+            let s = sampler(SamplerKind::Stratified, spp).with_lens(true);
+            assert_eq!(s.stratifies_lens(), stratified, "{spp}");
+            let pinhole = sampler(SamplerKind::Stratified, spp);
+            if spp == 1 {
+                assert_eq!(s.pixel_offset(3, 4, 0), pinhole.pixel_offset(3, 4, 0));
+                assert_eq!(s.lens(3, 4, 0), pinhole.lens(3, 4, 0));
+            }
+        }
+        assert!(
+            !sampler(SamplerKind::Independent, 4)
+                .with_lens(true)
+                .stratifies_lens()
+        );
     }
 
     #[test]
@@ -701,9 +807,8 @@ mod tests {
 
     #[test]
     fn a_group_s_numbers_are_the_numbers_one_by_one() {
-        // Every kind, the stratified one also through a lens (with a grid of cells that
-        // needs no second pass of a pixel's permutation, and with one that does), with and
-        // without lens points, through the dispatch (AVX-512 where the CPU has it) and
+        // Every kind, the stratified one also through a lens (with grids of 4 and 6
+        // cells), with and without lens points, through the dispatch (AVX-512 where the CPU has it) and
         // through the plain loop, for groups of every size.
         let pixels: Vec<(u32, u32)> = (0..64).map(|i| ((i * 5) % 41, (i * 3) % 16)).collect();
         for (kind, spp, lens) in [
@@ -722,14 +827,22 @@ mod tests {
                     let mut hashes = [0u64; 64];
                     sampler.pixel_hashes((&pixels[..n], 7), &mut hashes);
                     let hashes = &hashes[..n];
-                    sampler.group(hashes, s, (&mut u, &mut v), Some(&mut lens));
+                    let mut shuffles = [[0; MOST_LENS_CELLS as usize]; 64];
+                    sampler.shuffles(hashes, &mut shuffles);
+                    let numbers = (hashes, &shuffles[..n]);
+                    sampler.group(numbers, s, (&mut u, &mut v), Some(&mut lens));
                     let (mut u2, mut v2) = ([9.0; 64], [9.0; 64]);
-                    sampler.group(hashes, s, (&mut u2, &mut v2), None);
+                    sampler.group(numbers, s, (&mut u2, &mut v2), None);
                     if kind != SamplerKind::Center {
                         let mut plain_hashes = [0u64; 64];
                         hash_pixels(sampler.seed_hash, (&pixels[..n], 7), &mut plain_hashes);
                         assert_eq!(hashes, &plain_hashes[..n], "{kind:?}, {n} pixels");
-                        let group = sampler.group_of(&plain_hashes[..n], s);
+                        let shuffles: &[CellShuffle] = if sampler.stratifies_lens() {
+                            &shuffles[..n]
+                        } else {
+                            &[]
+                        };
+                        let group = sampler.group_of((&plain_hashes[..n], shuffles), s);
                         group_numbers(
                             &group,
                             &mut plain_u[..n],
