@@ -649,8 +649,8 @@ mod tests {
         // Over many pixels, the offset cell that meets lens cell 0 must be uniform over
         // the cells (else a pixel's mean is biased), and the pair that meets lens cells 0
         // and 1 uniform over the ordered pairs of distinct cells: a pairing shifted
-        // around the grid by a pixel's amount passes the first, not the second, and its
-        // images were noisier at 256 spp than with no pairing at all.
+        // around the grid by a pixel's amount would pass the first, not the second (its
+        // images were noisier at 256 spp than with lens points not stratified at all).
         for spp in [2, 4, 6, 7, 16] {
             let s = sampler(SamplerKind::Stratified, spp).with_lens(true);
             let n = spp as usize;
