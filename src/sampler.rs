@@ -248,27 +248,22 @@ impl Sampler {
             shuffles,
             s,
             stratum: self.stratum(s),
-            lens_grid: self.lens_grid(),
+            lens_strata: self.lens_strata,
         }
-    }
-
-    /// With the lens stratified, the grid: its cells and its columns.
-    #[inline(always)]
-    fn lens_grid(&self) -> Option<[u32; 2]> {
-        self.lens_strata.then_some([self.spp, self.columns])
     }
 
     /// The pixel offset of sample `s` of a random sampler, from its pixel's hash.
     #[inline(always)]
     fn offset_from(&self, pixel: u64, s: u32) -> (f64, f64) {
-        match (self.stratum(s), self.lens_grid()) {
-            (Some(_), Some(grid)) => {
+        match self.stratum(s) {
+            Some([.., columns, rows]) if self.lens_strata => {
                 let mut cells = [0; MOST_LENS_CELLS as usize];
-                shuffle(pixel, grid[0], &mut cells);
-                offset_in(cell(u32::from(cells[s as usize]), grid), pixel, s)
+                shuffle(pixel, self.spp, &mut cells);
+                let cell = cell(u32::from(cells[s as usize]), [columns, rows]);
+                in_cell(cell, unit_offset(pixel, s))
             }
-            (Some(cell), None) => offset_in(cell, pixel, s),
-            (None, _) => unit_offset(pixel, s),
+            Some(cell) => in_cell(cell, unit_offset(pixel, s)),
+            None => unit_offset(pixel, s),
         }
     }
 
@@ -276,16 +271,17 @@ impl Sampler {
     #[inline(always)]
     fn lens_from(&self, pixel: u64, s: u32) -> (f64, f64) {
         match self.stratum(s) {
-            Some(cell) if self.lens_strata => lens_in(cell, pixel, s),
+            Some(cell) if self.lens_strata => in_cell(cell, lens_from(pixel, s)),
             _ => lens_from(pixel, s),
         }
     }
 
     /// For the stratified sampler, sample `s`'s cell: its column and row, and the grid's
-    /// columns and rows ([`offset_in`]); `None` for the others.
+    /// columns and rows ([`in_cell`]); `None` for the others.
     #[inline(always)]
     fn stratum(&self, s: u32) -> Option<[f64; 4]> {
-        (self.kind == SamplerKind::Stratified).then(|| cell(s, [self.spp, self.columns]))
+        let grid = [self.columns, self.spp / self.columns].map(f64::from);
+        (self.kind == SamplerKind::Stratified).then(|| cell(s, grid))
     }
 
     /// A uniform number in `[0, 1)` determined by the seed, pixel, sample and dimension.
@@ -311,9 +307,9 @@ struct Group<'a> {
     /// For the stratified sampler, the sample's cell: its column and row, and the grid's
     /// columns and rows.
     stratum: Option<[f64; 4]>,
-    /// With the lens stratified, the grid's cells and columns: the cell is then the lens
-    /// point's, and each pixel's offset takes the cell its own shuffle gives the sample.
-    lens_grid: Option<[u32; 2]>,
+    /// Whether the lens is stratified: the cell is then the lens point's, and each pixel's
+    /// offset takes the cell its own shuffle gives the sample.
+    lens_strata: bool,
 }
 
 /// [`Sampler::pixel_hashes`] compiled for AVX-512.
@@ -425,22 +421,23 @@ fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut 
         shuffles,
         s,
         stratum,
-        lens_grid,
+        lens_strata,
     } = group;
     // The kind chosen once, outside the loops.
-    match (stratum, lens_grid) {
-        (Some(_), Some(grid)) => {
+    match stratum {
+        Some([.., columns, rows]) if lens_strata => {
             let offsets = pixel_hashes.iter().zip(shuffles).zip(u).zip(v);
             for (((&p, cells), u), v) in offsets {
-                (*u, *v) = offset_in(cell_at(u32::from(cells[s as usize]), grid), p, s);
+                let cell = cell(u32::from(cells[s as usize]), [columns, rows]);
+                (*u, *v) = in_cell(cell, unit_offset(p, s));
             }
         }
-        (Some(cell), None) => {
+        Some(cell) => {
             for ((&p, u), v) in pixel_hashes.iter().zip(u).zip(v) {
-                (*u, *v) = offset_in(cell, p, s);
+                (*u, *v) = in_cell(cell, unit_offset(p, s));
             }
         }
-        (None, _) => {
+        None => {
             for ((&p, u), v) in pixel_hashes.iter().zip(u).zip(v) {
                 (*u, *v) = unit_offset(p, s);
             }
@@ -449,9 +446,9 @@ fn group_numbers(group: &Group, u: &mut [f64], v: &mut [f64], lens: Option<&mut 
     if let Some(lens) = lens {
         let points = pixel_hashes.iter().zip(lens.iter_mut());
         match stratum {
-            Some(cell) if lens_grid.is_some() => {
+            Some(cell) if lens_strata => {
                 for (&p, lens) in points {
-                    *lens = lens_in(cell, p, s);
+                    *lens = in_cell(cell, lens_from(p, s));
                 }
             }
             _ => {
@@ -472,10 +469,9 @@ fn unit_offset(pixel: u64, s: u32) -> (f64, f64) {
     )
 }
 
-/// [`unit_offset`] placed in the stratified grid's `cell` (column, row, columns, rows).
+/// A point `(u, v)` of `[0, 1)²` placed in a grid's `cell` (column, row, columns, rows).
 #[inline(always)]
-fn offset_in([column, row, columns, rows]: [f64; 4], pixel: u64, s: u32) -> (f64, f64) {
-    let (u, v) = unit_offset(pixel, s);
+fn in_cell([column, row, columns, rows]: [f64; 4], (u, v): (f64, f64)) -> (f64, f64) {
     ((column + u) / columns, (row + v) / rows)
 }
 
@@ -485,38 +481,21 @@ fn lens_from(pixel: u64, s: u32) -> (f64, f64) {
     (uniform(pixel, s, DIM_LENS), uniform(pixel, s, DIM_LENS + 1))
 }
 
-/// [`lens_from`] placed in the lens grid's `cell` (column, row, columns, rows).
+/// Cell `i` of a grid of `[columns, rows]` (whole numbers), filled row by row: its column
+/// and row, and the grid's columns and rows. By float arithmetic, which the group loops
+/// take several pixels at a time, and exact: a grid has at most 2^16 columns (their
+/// square is at most its cells), so a quotient `i / columns` short of an integer is short
+/// by at least 2^-16, far more than its rounding (below 2^32 · 2^-53).
 #[inline(always)]
-fn lens_in([column, row, columns, rows]: [f64; 4], pixel: u64, s: u32) -> (f64, f64) {
-    let (u, v) = lens_from(pixel, s);
-    ((column + u) / columns, (row + v) / rows)
-}
-
-/// Cell `i` of a grid of `cells` in `columns` columns, filled row by row: its column and
-/// row, and the grid's columns and rows.
-#[inline(always)]
-fn cell(i: u32, [cells, columns]: [u32; 2]) -> [f64; 4] {
-    [i % columns, i / columns, columns, cells / columns].map(f64::from)
-}
-
-/// [`cell`] by float arithmetic, which the group loops take several pixels at a time: the
-/// same numbers. A grid has at most 2^16 columns (their square is at most its cells), so a
-/// quotient `i / columns` short of an integer is short by at least 2^-16, far more than
-/// its rounding (below 2^32 · 2^-53).
-#[inline(always)]
-fn cell_at(i: u32, [cells, columns]: [u32; 2]) -> [f64; 4] {
-    let (i, columns) = (small_integer(i), small_integer(columns));
+fn cell(i: u32, [columns, rows]: [f64; 2]) -> [f64; 4] {
+    let i = small_integer(i);
     let row = (i / columns).floor();
-    [
-        i - row * columns,
-        row,
-        columns,
-        small_integer(cells) / columns,
-    ]
+    [i - row * columns, row, columns, rows]
 }
 
-/// `k as f64`, exactly, through a float mantissa (as [`unit`] does): a conversion the
-/// group loops take several pixels at a time.
+/// `k as f64`, exactly, as `2^52 + k` in a float's mantissa less `2^52`: a conversion the
+/// group loops take several pixels at a time (x86 converts unsigned integers to floats
+/// only one at a time before AVX-512).
 #[inline(always)]
 fn small_integer(k: u32) -> f64 {
     const TWO_52: u64 = 0x4330_0000_0000_0000;
@@ -572,11 +551,10 @@ fn uniform(pixel_hash: u64, s: u32, dimension: u64) -> f64 {
 #[inline(always)]
 fn unit(bits: u64) -> f64 {
     const TWO_84: u64 = 0x4530_0000_0000_0000;
-    const TWO_52: u64 = 0x4330_0000_0000_0000;
     // 2^84 + high · 2^32 and 2^52 + low, each exact; less the powers, both halves are
     // exact, and so is their sum (below 2^53).
     let high = f64::from_bits(TWO_84 | (bits >> 32)) - f64::from_bits(TWO_84);
-    let low = f64::from_bits(TWO_52 | (bits & 0xffff_ffff)) - f64::from_bits(TWO_52);
+    let low = small_integer(bits as u32);
     (high + low) * (1.0 / (1u64 << 53) as f64)
 }
 
@@ -735,15 +713,12 @@ mod tests {
         let grids = (1..=300).chain([4096, 65_535, max - 1, max]);
         for spp in grids {
             let columns = sampler(SamplerKind::Stratified, spp).columns;
+            let grid = [columns, spp / columns].map(f64::from);
             let ends = [0, 1, spp / 2, spp - 1];
             let randoms = (0..50).map(|_| (random.next_u64() % u64::from(spp)) as u32);
             for i in ends.into_iter().chain(randoms) {
                 let integers = [i % columns, i / columns, columns, spp / columns];
-                assert_eq!(
-                    cell_at(i, [spp, columns]),
-                    integers.map(f64::from),
-                    "{spp}: {i}"
-                );
+                assert_eq!(cell(i, grid), integers.map(f64::from), "{spp}: {i}");
             }
         }
     }
