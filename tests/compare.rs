@@ -181,3 +181,33 @@ fn renders_from_the_same_manifest_compare_identical() {
         "gray PFMs are compared as depth"
     );
 }
+
+#[test]
+fn a_reader_gone_away_changes_neither_the_work_nor_the_exit_status() {
+    // `raybatch ... | head -1`: standard output closed before the first line. Before,
+    // `println!` panicked there (exit 101, a panic message on stderr).
+    let dir = Dir::new();
+    dir.write("a.ppm", p3(2, 1, &[10, 20, 30, 0, 0, 0]));
+    dir.write("b.ppm", p3(2, 1, &[10, 20, 30, 3, 0, 4]));
+    let same = dir.raybatch_unread(&["compare", "a.ppm", "a.ppm"]);
+    assert_eq!((same.status, same.stderr.as_str()), (0, ""));
+    let over = dir.raybatch_unread(&["compare", "a.ppm", "b.ppm", "--max-abs", "3.5"]);
+    assert_eq!(over.status, 1, "{}", over.stderr);
+    assert_eq!(over.error_lines().len(), 1, "{}", over.stderr);
+    assert!(over.stderr.contains("limit exceeded"), "{}", over.stderr);
+
+    // A batch renders every job and reports none of its lines.
+    for name in ["one", "two"] {
+        dir.write(
+            &format!("scenes/{name}.json"),
+            format!(r#"{{"image": {{"width": 4, "height": 3}}, "output": "{name}.ppm"}}"#),
+        );
+    }
+    let render = dir.raybatch_unread(&["render", "scenes"]);
+    assert_eq!((render.status, render.stderr.as_str()), (0, ""));
+    assert!(
+        dir.exists("scenes/one.ppm") && dir.exists("scenes/two.ppm"),
+        "{:?}",
+        dir.files()
+    );
+}

@@ -11,7 +11,8 @@
 //!   defaults; transforms.
 //! - `integrators`: what `hit`, `depth` and `normal` write.
 //! - `output`: file formats, encodings, output paths, `--out`, `--stats`.
-//! - `compare`: `raybatch compare` figures, limits and refusals.
+//! - `compare`: `raybatch compare` figures, limits and refusals; a reader gone away
+//!   (`| head -1`) changes no command's work or exit status.
 //! - `embree` (feature `embree`): every shipped and stress scene verified against Embree,
 //!   `render --backend embree`, watertightness cross-checked, rays Embree would abort on,
 //!   no hit at `t = 0`, the strict interval and the normals through the Embree backend,

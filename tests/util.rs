@@ -106,6 +106,25 @@ impl Dir {
         }
     }
 
+    /// Runs `raybatch ARGS...` as [`Dir::raybatch`] does, its standard output a pipe whose
+    /// reader has already gone away (as in `raybatch ... | head -1` once `head` is done):
+    /// every write to it fails. `stdout` is empty.
+    pub fn raybatch_unread(&self, args: &[&str]) -> Run {
+        let (reader, writer) = std::io::pipe().expect("a pipe");
+        drop(reader);
+        let output = Command::new(env!("CARGO_BIN_EXE_raybatch"))
+            .args(args)
+            .current_dir(self.path())
+            .stdout(writer)
+            .output()
+            .expect("run raybatch");
+        Run {
+            status: output.status.code().unwrap_or(-1),
+            stdout: String::new(),
+            stderr: String::from_utf8_lossy(&output.stderr).into_owned(),
+        }
+    }
+
     /// Renders `manifest` (a file name in this folder) and insists it succeeds.
     pub fn render_ok(&self, manifest: &str) -> Run {
         let run = self.raybatch(&["render", manifest]);

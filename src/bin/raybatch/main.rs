@@ -16,6 +16,29 @@ use args::{BackendArg, BenchArgs, Cli, Command, CompareArgs, RenderArgs, StressA
 use raybatch::compare::{Limits, compare_images};
 use raybatch::job::{Backend, Batch, JobOptions, manifests_in};
 
+/// `println!` for the command's report on standard output, except that a reader gone
+/// away (`raybatch compare a.pfm b.pfm | head -1`) changes nothing: the line is dropped,
+/// and the work and the exit status stay what they would have been (`println!` panics).
+macro_rules! outln {
+    ($($arg:tt)*) => { write_out(format_args!("{}\n", format_args!($($arg)*))) };
+}
+
+/// `print!` as [`outln!`] does `println!`.
+macro_rules! out {
+    ($($arg:tt)*) => { write_out(format_args!($($arg)*)) };
+}
+
+/// Writes to standard output for [`outln!`] and [`out!`]: a closed pipe is ignored, any
+/// other failure reported on standard error.
+fn write_out(text: std::fmt::Arguments) {
+    let mut stdout = std::io::stdout().lock();
+    if let Err(error) = stdout.write_fmt(text).and_then(|()| stdout.flush())
+        && error.kind() != std::io::ErrorKind::BrokenPipe
+    {
+        eprintln!("raybatch: cannot write to standard output: {error}");
+    }
+}
+
 /// Exit status for a bad command line (clap uses the same for its own errors).
 const USAGE: u8 = 2;
 
@@ -100,7 +123,7 @@ fn render(args: RenderArgs) -> anyhow::Result<ExitCode> {
                 bar.suspend(|| eprintln!("raybatch: {}", one_line(&error.to_string())));
             }
             None if !args.quiet => bar.suspend(|| {
-                println!(
+                outln!(
                     "{} -> {} ({}x{}, {} spp, {:.3} s)",
                     manifest.display(),
                     report
@@ -157,11 +180,11 @@ fn compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
         line["b"] = args.b.display().to_string().into();
         line["ok"] = failures.is_empty().into();
         line["failures"] = failures.clone().into();
-        println!("{line}");
+        outln!("{line}");
     } else {
         let c = &comparison;
         let pixels = f64::from(c.width) * f64::from(c.height);
-        println!(
+        outln!(
             "{} vs {} ({} x {}): {} differing pixels ({:.4}%), max abs difference {}, RMSE {:.6e}, PSNR {}",
             args.a.display(),
             args.b.display(),
@@ -178,7 +201,7 @@ fn compare(args: CompareArgs) -> anyhow::Result<ExitCode> {
             },
         );
         if let Some(depth) = &c.depth {
-            println!("depth: {}", depth.summary());
+            outln!("depth: {}", depth.summary());
         }
     }
     for failure in &failures {
@@ -212,9 +235,9 @@ fn verify(args: VerifyArgs) -> anyhow::Result<ExitCode> {
                     let mut line = v.to_json();
                     line["ok"] = exceeded.is_empty().into();
                     line["failures"] = exceeded.clone().into();
-                    println!("{line}");
+                    outln!("{line}");
                 } else {
-                    println!("{}", v.summary());
+                    outln!("{}", v.summary());
                 }
                 for failure in &exceeded {
                     eprintln!(
@@ -278,13 +301,13 @@ fn bench(args: BenchArgs) -> anyhow::Result<ExitCode> {
         );
     }
     if args.json {
-        println!("{}", report.to_json());
+        outln!("{}", report.to_json());
     } else {
         let command: Vec<String> = std::env::args().skip(1).collect();
-        println!("CPU: {}  ", raybatch::bench::cpu_name());
-        println!("Packets: {}  ", raybatch::bench::packet_lanes(&options));
-        println!("Command: `raybatch {}`\n", command.join(" "));
-        print!("{}", report.to_markdown());
+        outln!("CPU: {}  ", raybatch::bench::cpu_name());
+        outln!("Packets: {}  ", raybatch::bench::packet_lanes(&options));
+        outln!("Command: `raybatch {}`\n", command.join(" "));
+        out!("{}", report.to_markdown());
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -299,9 +322,9 @@ fn stress(args: StressArgs) -> anyhow::Result<ExitCode> {
     };
     let report = stress::run(options);
     if args.json {
-        println!("{}", report.to_json());
+        outln!("{}", report.to_json());
     } else {
-        print!("{}", report.to_markdown());
+        out!("{}", report.to_markdown());
     }
     if let Some(dir) = &args.accuracy {
         let written = raybatch::accuracy::write(dir, args.quick)
