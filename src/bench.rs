@@ -753,7 +753,7 @@ pub fn median(runs: usize, mut f: impl FnMut()) -> f64 {
 }
 
 /// The median of some durations (the upper one of an even count).
-fn median_of(mut times: Vec<f64>) -> f64 {
+pub(crate) fn median_of(mut times: Vec<f64>) -> f64 {
     times.sort_by(f64::total_cmp);
     times[times.len() / 2]
 }

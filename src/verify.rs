@@ -2,14 +2,17 @@
 //! raybatch (through the tree a render of the manifest builds) and by the Embree
 //! reference, closest hit only, and the distances compared:
 //! hit-mask agreement, relative depth error, and the two trace times side by side (the rays
-//! sent as the renderer sends them, and made before the clocks start).
+//! sent as the renderer sends them, and made before the clocks start; with several passes,
+//! the median time of a whole pass, the tracers taking turns).
 
+use std::num::NonZeroU32;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use rayon::prelude::*;
 use serde_json::json;
 
+use crate::bench::median_of;
 use crate::compare::DepthComparison;
 use crate::embree::EmbreeScene;
 use crate::error::{Error, JobError};
@@ -33,9 +36,32 @@ pub struct Verification {
     /// Seconds building each tree (ours as a render of the manifest builds it).
     pub build_raybatch_s: f64,
     pub build_embree_s: f64,
-    /// Seconds tracing all rays (closest hit), on the current rayon pool.
+    /// Seconds tracing all rays (closest hit), on the current rayon pool: with several
+    /// passes, the median pass.
     pub trace_raybatch_s: f64,
     pub trace_embree_s: f64,
+    /// Times each tracer traced every ray ([`VerifyOptions::passes`]).
+    pub passes: u32,
+}
+
+/// How [`verify_with`] times the tracers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VerifyOptions {
+    /// Times each tracer traces every ray. Each round of rays is traced this many times
+    /// by each tracer in turns, the one going first alternating from pass to pass, and a
+    /// tracer's time is its median pass; the answers compared are the first pass's (the
+    /// tracers are deterministic). One pass (the default) times cold caches and a
+    /// single spell of the machine; on a small image that is a few milliseconds, which a
+    /// busy neighbour or a thread's wake-up moves by a tenth or more.
+    pub passes: NonZeroU32,
+}
+
+impl Default for VerifyOptions {
+    fn default() -> VerifyOptions {
+        VerifyOptions {
+            passes: NonZeroU32::MIN,
+        }
+    }
 }
 
 impl Verification {
@@ -51,14 +77,19 @@ impl Verification {
             "build_embree_s": self.build_embree_s,
             "trace_raybatch_s": self.trace_raybatch_s,
             "trace_embree_s": self.trace_embree_s,
+            "passes": self.passes,
         })
     }
 
     /// One line for people.
     pub fn summary(&self) -> String {
         let rate = |s: f64| self.rays as f64 / s.max(1e-12) / 1e6;
+        let passes = match self.passes {
+            1 => String::new(),
+            n => format!(" (median of {n} passes)"),
+        };
         format!(
-            "{}: {} rays; {}; trace raybatch {:.3} s ({:.2} Mrays/s), embree {:.3} s ({:.2} Mrays/s)",
+            "{}: {} rays; {}; trace{passes} raybatch {:.3} s ({:.2} Mrays/s), embree {:.3} s ({:.2} Mrays/s)",
             self.manifest.display(),
             self.rays,
             self.depth.summary(),
@@ -70,15 +101,28 @@ impl Verification {
     }
 }
 
-/// Verifies the manifest at `path` (meshes through `cache`).
+/// Verifies the manifest at `path` (meshes through `cache`), one pass of each tracer.
 pub fn verify(path: &Path, cache: &mut MeshCache) -> Result<Verification, JobError> {
-    verify_inner(path, cache).map_err(|error| JobError {
+    verify_with(path, cache, VerifyOptions::default())
+}
+
+/// [`verify`] with `options`.
+pub fn verify_with(
+    path: &Path,
+    cache: &mut MeshCache,
+    options: VerifyOptions,
+) -> Result<Verification, JobError> {
+    verify_inner(path, cache, options).map_err(|error| JobError {
         manifest: path.to_path_buf(),
         error,
     })
 }
 
-fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Error> {
+fn verify_inner(
+    path: &Path,
+    cache: &mut MeshCache,
+    options: VerifyOptions,
+) -> Result<Verification, Error> {
     let manifest = Manifest::load(path)?;
     let geometry = SceneGeometry::load(&manifest, cache)?;
     let (triangles, spheres) = (geometry.triangles.len(), geometry.spheres.len());
@@ -93,7 +137,7 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
 
     let view = View::new(&manifest);
     let (ours_t, reference_t, trace_raybatch_s, trace_embree_s) =
-        trace_both(&ours, &reference, &view, &manifest);
+        trace_both(&ours, &reference, &view, &manifest, options.passes.get());
     let as_option = |t: f64| (!t.is_nan()).then_some(t);
     let depth = DepthComparison::from_pairs(
         ours_t
@@ -112,6 +156,7 @@ fn verify_inner(path: &Path, cache: &mut MeshCache) -> Result<Verification, Erro
         build_embree_s,
         trace_raybatch_s,
         trace_embree_s,
+        passes: options.passes.get(),
     })
 }
 
@@ -122,15 +167,17 @@ const RAYS_PER_ROUND: usize = 1 << 19;
 const PIECES_PER_ROUND: usize = 16;
 
 /// The closest-hit distance of every camera ray (NaN for a miss) by each tracer, the same
-/// rays in the same order, and the seconds each spent tracing. The rays go as the renderer
-/// sends them, the same sample of each group of pixels together ([`Tracer::closest_hits`]:
-/// our packets, Embree's coherent streams), in rounds: each round's rays are made first,
-/// then traced by one tracer and by the other, only the tracing timed.
+/// rays in the same order, and the seconds each spent tracing them all (its median of
+/// `passes`). The rays go as the renderer sends them, the same sample of each group of
+/// pixels together ([`Tracer::closest_hits`]: our packets, Embree's coherent streams), in
+/// rounds: each round's rays are made first, then traced by one tracer and by the other,
+/// `passes` times, the first tracer alternating; only the tracing is timed.
 fn trace_both<A: Tracer, B: Tracer>(
     ours: &A,
     reference: &B,
     view: &View,
     manifest: &Manifest,
+    passes: u32,
 ) -> (Vec<f64>, Vec<f64>, f64, f64) {
     let (width, height, spp) = (manifest.width, manifest.height, view.spp());
     // Pieces: a band's groups from one index to another, at most a piece's share of a
@@ -147,7 +194,8 @@ fn trace_both<A: Tracer, B: Tracer>(
         })
         .collect();
     let (mut ours_t, mut reference_t) = (Vec::new(), Vec::new());
-    let (mut ours_s, mut reference_s) = (0.0, 0.0);
+    // Seconds of each pass, summed over the rounds.
+    let (mut ours_s, mut reference_s) = (vec![0.0; passes as usize], vec![0.0; passes as usize]);
     for round in pieces.chunks(PIECES_PER_ROUND) {
         let rays: Vec<Vec<Ray>> = round
             .par_iter()
@@ -167,15 +215,32 @@ fn trace_both<A: Tracer, B: Tracer>(
                 rays
             })
             .collect();
-        ours_s += trace_round(ours, &rays, &mut ours_t);
-        reference_s += trace_round(reference, &rays, &mut reference_t);
+        for pass in 0..passes as usize {
+            // The first pass's distances are the ones compared.
+            let (ours_out, reference_out) = match pass {
+                0 => (Some(&mut ours_t), Some(&mut reference_t)),
+                _ => (None, None),
+            };
+            if pass % 2 == 0 {
+                ours_s[pass] += trace_round(ours, &rays, ours_out);
+                reference_s[pass] += trace_round(reference, &rays, reference_out);
+            } else {
+                reference_s[pass] += trace_round(reference, &rays, reference_out);
+                ours_s[pass] += trace_round(ours, &rays, ours_out);
+            }
+        }
     }
-    (ours_t, reference_t, ours_s, reference_s)
+    (
+        ours_t,
+        reference_t,
+        median_of(ours_s),
+        median_of(reference_s),
+    )
 }
 
 /// Traces a round's rays a group at a time, each piece on its own thread, and appends their
-/// distances to `t`; returns the seconds spent tracing.
-fn trace_round<T: Tracer>(tracer: &T, round: &[Vec<Ray>], t: &mut Vec<f64>) -> f64 {
+/// distances to `t` if given; returns the seconds spent tracing.
+fn trace_round<T: Tracer>(tracer: &T, round: &[Vec<Ray>], t: Option<&mut Vec<f64>>) -> f64 {
     let mut hits: Vec<Vec<Option<Hit>>> = round.iter().map(|rays| vec![None; rays.len()]).collect();
     let start = Instant::now();
     hits.par_iter_mut().zip(round).for_each(|(hits, rays)| {
@@ -184,10 +249,12 @@ fn trace_round<T: Tracer>(tracer: &T, round: &[Vec<Ray>], t: &mut Vec<f64>) -> f
         }
     });
     let seconds = start.elapsed().as_secs_f64();
-    t.extend(
-        hits.iter()
-            .flatten()
-            .map(|hit| hit.map_or(f64::NAN, |hit| hit.t)),
-    );
+    if let Some(t) = t {
+        t.extend(
+            hits.iter()
+                .flatten()
+                .map(|hit| hit.map_or(f64::NAN, |hit| hit.t)),
+        );
+    }
     seconds
 }

@@ -63,6 +63,43 @@ fn verify_fails_past_its_limits() {
 }
 
 #[test]
+fn verify_times_its_median_pass_and_compares_the_first() {
+    // Three passes each: the same rays and the same comparison as one pass (the tracers
+    // are deterministic, and only the first pass's distances are compared), and the
+    // passes are reported.
+    let dir = Dir::new();
+    let canonical = repo("scenes/canonical.json");
+    let mut runs = Vec::new();
+    for passes in ["1", "3"] {
+        let run = dir.raybatch(&[
+            "verify",
+            canonical.to_str().unwrap(),
+            "--json",
+            "--passes",
+            passes,
+        ]);
+        assert_eq!(run.status, 0, "{}\n{}", run.stdout, run.stderr);
+        let line: Value = serde_json::from_str(run.stdout.trim()).unwrap();
+        assert_eq!(line["passes"].to_string(), passes, "{line}");
+        assert!(line["trace_raybatch_s"].as_f64().unwrap() > 0.0, "{line}");
+        assert!(line["trace_embree_s"].as_f64().unwrap() > 0.0, "{line}");
+        runs.push(line);
+    }
+    assert_eq!(runs[0]["rays"], 640 * 480);
+    assert_eq!(runs[0]["rays"], runs[1]["rays"]);
+    assert_eq!(runs[0]["depth"], runs[1]["depth"]);
+    assert_eq!(runs[1]["depth"]["samples"], 640 * 480, "{}", runs[1]);
+    // The summary line names the passes only when there are several.
+    let text = dir.raybatch(&["verify", canonical.to_str().unwrap(), "--passes", "3"]);
+    assert_eq!(text.status, 0, "{}", text.stderr);
+    assert!(
+        text.stdout.contains("(median of 3 passes)"),
+        "{}",
+        text.stdout
+    );
+}
+
+#[test]
 fn verify_traces_the_tree_a_render_builds() {
     // The torus's 2,304 triangles: 49,152 camera rays are too few for reinsertion, four
     // samples a pixel enough (64 rays a triangle). `verify` must check the tree the render

@@ -597,6 +597,7 @@ fn exit_statuses_are_0_1_and_2() {
         vec!["render", "good.json", "--backend", "ospray"],
         vec!["bench", "--quick", "--models", "absent"],
         vec!["bench", "--quick", "--only", "no-such-scene"],
+        vec!["verify", "good.json", "--passes", "0"],
         #[cfg(not(feature = "embree"))]
         vec!["render", "good.json", "--backend", "embree"],
         #[cfg(not(feature = "embree"))]

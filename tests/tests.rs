@@ -16,7 +16,7 @@
 //! - `embree` (feature `embree`): every shipped and stress scene verified against Embree,
 //!   `render --backend embree`, watertightness cross-checked, rays Embree would abort on,
 //!   no hit at `t = 0`, the strict interval and the normals through the Embree backend,
-//!   `verify` tracing the tree a render builds.
+//!   `verify` tracing the tree a render builds and timing its median pass.
 //! - `meshes`: OBJ and glTF fixtures written by the tests.
 //! - `errors`: bad manifests and mesh files refused with a place and cause, no partial
 //!   files, batches going on, exit statuses.

@@ -1,6 +1,6 @@
 //! The command line.
 
-use std::num::NonZeroUsize;
+use std::num::{NonZeroU32, NonZeroUsize};
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
@@ -164,6 +164,11 @@ pub struct VerifyArgs {
     /// Worker threads for both tracers (default: all cores).
     #[arg(long, value_name = "N")]
     pub threads: Option<NonZeroUsize>,
+    /// Times each tracer traces every ray, in turns (the first alternating); the trace
+    /// times reported are each tracer's median pass. One pass times cold caches and one
+    /// spell of the machine: on small images, take several.
+    #[arg(long, value_name = "N", default_value = "1")]
+    pub passes: NonZeroU32,
     /// Largest fraction of rays where exactly one tracer hits.
     #[arg(long, value_name = "F", default_value_t = 1e-4)]
     pub max_mask_fraction: f64,

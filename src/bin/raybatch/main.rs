@@ -224,7 +224,10 @@ fn verify(args: VerifyArgs) -> anyhow::Result<ExitCode> {
     let (jobs, mut failures) = collect_manifests(&args.paths, None);
     let mut meshes = raybatch::mesh::MeshCache::new();
     for manifest in &jobs {
-        match raybatch::verify::verify(manifest, &mut meshes) {
+        let options = raybatch::verify::VerifyOptions {
+            passes: args.passes,
+        };
+        match raybatch::verify::verify_with(manifest, &mut meshes, options) {
             Err(error) => {
                 failures += 1;
                 eprintln!("raybatch: {}", one_line(&error.to_string()));
