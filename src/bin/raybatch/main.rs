@@ -223,10 +223,10 @@ fn verify(args: VerifyArgs) -> anyhow::Result<ExitCode> {
     };
     let (jobs, mut failures) = collect_manifests(&args.paths, None);
     let mut meshes = raybatch::mesh::MeshCache::new();
+    let options = raybatch::verify::VerifyOptions {
+        passes: args.passes,
+    };
     for manifest in &jobs {
-        let options = raybatch::verify::VerifyOptions {
-            passes: args.passes,
-        };
         match raybatch::verify::verify_with(manifest, &mut meshes, options) {
             Err(error) => {
                 failures += 1;
