@@ -103,14 +103,37 @@ impl View {
             }
             return;
         }
-        let hashes = self.pixel_hashes(pixels, y0);
-        if self.sampler.stratifies_lens() {
+        if self.stratifies_lens() {
             let mut shuffles = [[0; MOST_LENS_CELLS as usize]; GROUP];
-            self.shuffles(&hashes[..pixels.len()], &mut shuffles);
-            self.rays_hashed((pixels, y0, &hashes, &shuffles), s, out);
+            let (hashes, shuffles) = self.group_numbers(pixels, y0, &mut shuffles);
+            self.rays_hashed((pixels, y0, &hashes, shuffles), s, out);
         } else {
+            let hashes = self.pixel_hashes(pixels, y0);
             self.rays_hashed((pixels, y0, &hashes, &[]), s, out);
         }
+    }
+
+    /// What all the samples of a group of pixels `(x, y0 + dy)` share, made once for them:
+    /// the pixels' [`View::pixel_hashes`] and, where [`View::stratifies_lens`], their
+    /// [`View::shuffles`], written into `shuffles`. Returns the hashes and the part of
+    /// `shuffles` that [`View::rays_hashed`] reads (none without a stratified lens).
+    ///
+    /// # Panics
+    /// If `pixels` holds more than [`GROUP`].
+    pub fn group_numbers<'a>(
+        &self,
+        pixels: &[(u32, u32)],
+        y0: u32,
+        shuffles: &'a mut [CellShuffle; GROUP],
+    ) -> ([u64; GROUP], &'a [CellShuffle]) {
+        let hashes = self.pixel_hashes(pixels, y0);
+        self.shuffles(&hashes[..pixels.len()], shuffles);
+        let used = if self.stratifies_lens() {
+            pixels.len()
+        } else {
+            0
+        };
+        (hashes, &shuffles[..used])
     }
 
     /// The sampler's hashes of a group's pixels `(x, y0 + dy)`, which stay the same
@@ -328,9 +351,7 @@ pub fn render_with<T: Tracer, I: Integrator>(
                 continue;
             }
             let mut sums = [[0.0f64; 3]; GROUP];
-            let hashes = view.pixel_hashes(&pixels[..n], band.y0);
-            view.shuffles(&hashes[..n], &mut shuffles);
-            let shuffles = &shuffles[..if view.stratifies_lens() { n } else { 0 }];
+            let (hashes, shuffles) = view.group_numbers(&pixels[..n], band.y0, &mut shuffles);
             for s in 0..spp {
                 let numbers = (&pixels[..n], band.y0, &hashes, shuffles);
                 view.rays_hashed(numbers, s, &mut rays[..n]);

@@ -20,6 +20,7 @@ use crate::manifest::Manifest;
 use crate::mesh::MeshCache;
 use crate::ray::Ray;
 use crate::render::{GROUP, PACKET_SIDE, TILE, View, groups};
+use crate::sampler::MOST_LENS_CELLS;
 use crate::scene::{Hit, Scene, SceneGeometry, Tracer};
 
 /// The outcome of verifying one manifest.
@@ -205,10 +206,13 @@ fn trace_both<A: Tracer, B: Tracer>(
                 let mut rays = Vec::with_capacity((end - first) * rays_per_group);
                 let mut group = [view.ray(0, 0, 0); GROUP];
                 let mut pixels = [(0, 0); GROUP];
+                let mut shuffles = [[0; MOST_LENS_CELLS as usize]; GROUP];
                 for tile in groups(width, rows).skip(first).take(end - first) {
                     let n = tile.pixels(&mut pixels);
+                    let (hashes, shuffles) = view.group_numbers(&pixels[..n], y0, &mut shuffles);
                     for s in 0..spp {
-                        view.rays(&pixels[..n], y0, s, &mut group[..n]);
+                        let numbers = (&pixels[..n], y0, &hashes, shuffles);
+                        view.rays_hashed(numbers, s, &mut group[..n]);
                         rays.extend_from_slice(&group[..n]);
                     }
                 }
