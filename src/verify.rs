@@ -1,9 +1,10 @@
 //! `raybatch verify`: every camera ray of a manifest (every pixel, every sample) traced by
 //! raybatch (through the tree a render of the manifest builds) and by the Embree
 //! reference, closest hit only, and the distances compared:
-//! hit-mask agreement, relative depth error, and the two trace times side by side (the rays
-//! sent as the renderer sends them, and made before the clocks start; with several passes,
-//! the median time of a whole pass, the tracers taking turns).
+//! hit-mask agreement, relative depth error, and the trace times side by side: ours, Embree's
+//! coherent streams and Embree's single rays (`rtcIntersect1`), the rays sent as the renderer
+//! sends them and made before the clocks start; with several passes, the median time of a
+//! whole pass, the tracers taking turns.
 
 use std::num::NonZeroU32;
 use std::path::{Path, PathBuf};
@@ -38,9 +39,12 @@ pub struct Verification {
     pub build_raybatch_s: f64,
     pub build_embree_s: f64,
     /// Seconds tracing all rays (closest hit), on the current rayon pool: with several
-    /// passes, the median pass.
+    /// passes, the median pass. Ours as a render traces them, Embree's by coherent streams
+    /// (`rtcIntersect1M` over each group), and Embree's one ray at a time
+    /// (`rtcIntersect1`, as a program calling Embree per pixel does).
     pub trace_raybatch_s: f64,
     pub trace_embree_s: f64,
+    pub trace_embree_single_s: f64,
     /// Times each tracer traced every ray ([`VerifyOptions::passes`]).
     pub passes: u32,
 }
@@ -48,9 +52,9 @@ pub struct Verification {
 /// How [`verify_with`] times the tracers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct VerifyOptions {
-    /// Times each tracer traces every ray. Each round of rays is traced this many times
-    /// by each tracer in turns, the one going first alternating from pass to pass, and a
-    /// tracer's time is its median pass; the answers compared are the first pass's (the
+    /// Times every ray is traced each way (ours, Embree's streams, Embree's single rays).
+    /// Each round of rays is traced this many times each way in turns, the way going first
+    /// rotating from pass to pass, and a way's time is its median pass; the answers compared are the first pass's (the
     /// tracers are deterministic). One pass (the default) times cold caches and a
     /// single spell of the machine; on a small image that is a few milliseconds, which a
     /// busy neighbour or a thread's wake-up moves by a tenth or more.
@@ -78,6 +82,7 @@ impl Verification {
             "build_embree_s": self.build_embree_s,
             "trace_raybatch_s": self.trace_raybatch_s,
             "trace_embree_s": self.trace_embree_s,
+            "trace_embree_single_s": self.trace_embree_single_s,
             "passes": self.passes,
         })
     }
@@ -90,7 +95,7 @@ impl Verification {
             n => format!(" (median of {n} passes)"),
         };
         format!(
-            "{}: {} rays; {}; trace{passes} raybatch {:.3} s ({:.2} Mrays/s), embree {:.3} s ({:.2} Mrays/s)",
+            "{}: {} rays; {}; trace{passes} raybatch {:.3} s ({:.2} Mrays/s), embree streams {:.3} s ({:.2} Mrays/s), embree single rays {:.3} s ({:.2} Mrays/s)",
             self.manifest.display(),
             self.rays,
             self.depth.summary(),
@@ -98,6 +103,8 @@ impl Verification {
             rate(self.trace_raybatch_s),
             self.trace_embree_s,
             rate(self.trace_embree_s),
+            self.trace_embree_single_s,
+            rate(self.trace_embree_single_s),
         )
     }
 }
@@ -137,8 +144,8 @@ fn verify_inner(
     let build_embree_s = start.elapsed().as_secs_f64();
 
     let view = View::new(&manifest);
-    let (ours_t, reference_t, trace_raybatch_s, trace_embree_s) =
-        trace_both(&ours, &reference, &view, &manifest, options.passes.get());
+    let traced = trace_all(&ours, &reference, &view, &manifest, options.passes.get());
+    let (ours_t, reference_t) = (traced.ours_t, traced.reference_t);
     let as_option = |t: f64| (!t.is_nan()).then_some(t);
     let depth = DepthComparison::from_pairs(
         ours_t
@@ -155,8 +162,9 @@ fn verify_inner(
         depth,
         build_raybatch_s,
         build_embree_s,
-        trace_raybatch_s,
-        trace_embree_s,
+        trace_raybatch_s: traced.seconds[0],
+        trace_embree_s: traced.seconds[1],
+        trace_embree_single_s: traced.seconds[2],
         passes: options.passes.get(),
     })
 }
@@ -167,19 +175,33 @@ const RAYS_PER_ROUND: usize = 1 << 19;
 /// several.
 const PIECES_PER_ROUND: usize = 16;
 
-/// The closest-hit distance of every camera ray (NaN for a miss) by each tracer, the same
-/// rays in the same order, and the seconds each spent tracing them all (its median of
-/// `passes`). The rays go as the renderer sends them, the same sample of each group of
-/// pixels together ([`Tracer::closest_hits`]: our packets, Embree's coherent streams), in
-/// rounds: each round's rays are made first, then traced by one tracer and by the other,
-/// `passes` times, the first tracer alternating; only the tracing is timed.
-fn trace_both<A: Tracer, B: Tracer>(
+/// What [`trace_all`] returns.
+struct Traced {
+    /// The closest-hit distance of every camera ray (NaN for a miss), ours and Embree's, the
+    /// same rays in the same order.
+    ours_t: Vec<f64>,
+    reference_t: Vec<f64>,
+    /// The median pass's seconds: ours, Embree's streams, Embree's single rays.
+    seconds: [f64; TIMED],
+}
+
+/// The ways of tracing timed: ours, Embree's streams, Embree's single rays.
+const TIMED: usize = 3;
+
+/// Traces every camera ray of the view with ours and with the reference. The rays go as the
+/// renderer sends them, the same sample of each group of pixels together
+/// ([`Tracer::closest_hits`]: our packets, Embree's coherent streams), and the reference
+/// also traces them one at a time ([`Tracer::closest_hit`]: `rtcIntersect1`). They go in
+/// rounds: each round's rays are made first, then traced by each way in turn, `passes`
+/// times, the way going first rotating from pass to pass; only the tracing is timed, and
+/// the distances kept are the first pass's.
+fn trace_all<A: Tracer, B: Tracer>(
     ours: &A,
     reference: &B,
     view: &View,
     manifest: &Manifest,
     passes: u32,
-) -> (Vec<f64>, Vec<f64>, f64, f64) {
+) -> Traced {
     let (width, height, spp) = (manifest.width, manifest.height, view.spp());
     // Pieces: a band's groups from one index to another, at most a piece's share of a
     // round's rays (but one group at least).
@@ -195,8 +217,8 @@ fn trace_both<A: Tracer, B: Tracer>(
         })
         .collect();
     let (mut ours_t, mut reference_t) = (Vec::new(), Vec::new());
-    // Seconds of each pass, summed over the rounds.
-    let (mut ours_s, mut reference_s) = (vec![0.0; passes as usize], vec![0.0; passes as usize]);
+    // Each pass's seconds each way, summed over the rounds.
+    let mut seconds = vec![[0.0; TIMED]; passes as usize];
     for round in pieces.chunks(PIECES_PER_ROUND) {
         let rays: Vec<Vec<Ray>> = round
             .par_iter()
@@ -219,37 +241,46 @@ fn trace_both<A: Tracer, B: Tracer>(
                 rays
             })
             .collect();
-        for pass in 0..passes as usize {
-            // The first pass's distances are the ones compared.
-            let (ours_out, reference_out) = match pass {
-                0 => (Some(&mut ours_t), Some(&mut reference_t)),
-                _ => (None, None),
-            };
-            if pass % 2 == 0 {
-                ours_s[pass] += trace_round(ours, &rays, ours_out);
-                reference_s[pass] += trace_round(reference, &rays, reference_out);
-            } else {
-                reference_s[pass] += trace_round(reference, &rays, reference_out);
-                ours_s[pass] += trace_round(ours, &rays, ours_out);
+        for (pass, pass_seconds) in seconds.iter_mut().enumerate() {
+            for turn in 0..TIMED {
+                let way = (pass + turn) % TIMED;
+                // The first pass's distances are the ones compared.
+                let first = pass == 0;
+                pass_seconds[way] += match way {
+                    0 => trace_round(&rays, first.then_some(&mut ours_t), |rays, hits| {
+                        ours.closest_hits(rays, hits)
+                    }),
+                    1 => trace_round(&rays, first.then_some(&mut reference_t), |rays, hits| {
+                        reference.closest_hits(rays, hits)
+                    }),
+                    _ => trace_round(&rays, None, |rays, hits| {
+                        for (ray, hit) in rays.iter().zip(hits) {
+                            *hit = reference.closest_hit(ray);
+                        }
+                    }),
+                };
             }
         }
     }
-    (
+    Traced {
         ours_t,
         reference_t,
-        median_of(ours_s),
-        median_of(reference_s),
-    )
+        seconds: std::array::from_fn(|way| median_of(seconds.iter().map(|s| s[way]).collect())),
+    }
 }
 
-/// Traces a round's rays a group at a time, each piece on its own thread, and appends their
-/// distances to `t` if given; returns the seconds spent tracing.
-fn trace_round<T: Tracer>(tracer: &T, round: &[Vec<Ray>], t: Option<&mut Vec<f64>>) -> f64 {
+/// Traces a round's rays a group at a time with `trace`, each piece on its own thread, and
+/// appends their distances to `t` if given; returns the seconds spent tracing.
+fn trace_round(
+    round: &[Vec<Ray>],
+    t: Option<&mut Vec<f64>>,
+    trace: impl Fn(&[Ray], &mut [Option<Hit>]) + Sync,
+) -> f64 {
     let mut hits: Vec<Vec<Option<Hit>>> = round.iter().map(|rays| vec![None; rays.len()]).collect();
     let start = Instant::now();
     hits.par_iter_mut().zip(round).for_each(|(hits, rays)| {
         for (rays, hits) in rays.chunks(GROUP).zip(hits.chunks_mut(GROUP)) {
-            tracer.closest_hits(rays, hits);
+            trace(rays, hits);
         }
     });
     let seconds = start.elapsed().as_secs_f64();

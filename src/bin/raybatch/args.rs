@@ -164,9 +164,10 @@ pub struct VerifyArgs {
     /// Worker threads for both tracers (default: all cores).
     #[arg(long, value_name = "N")]
     pub threads: Option<NonZeroUsize>,
-    /// Times each tracer traces every ray, in turns (the first alternating); the trace
-    /// times reported are each tracer's median pass. One pass times cold caches and one
-    /// spell of the machine: on small images, take several.
+    /// Times every ray is traced each way (ours, Embree's streams, Embree's single rays),
+    /// in turns (the first rotating); the trace times reported are each way's median pass.
+    /// One pass times cold caches and one spell of the machine: on small images, take
+    /// several.
     #[arg(long, value_name = "N", default_value = "1")]
     pub passes: NonZeroU32,
     /// Largest fraction of rays where exactly one tracer hits.
