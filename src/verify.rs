@@ -1,10 +1,10 @@
 //! `raybatch verify`: every camera ray of a manifest (every pixel, every sample) traced by
 //! raybatch (through the tree a render of the manifest builds) and by the Embree
 //! reference, closest hit only, and the distances compared:
-//! hit-mask agreement, relative depth error, and the trace times side by side: ours, Embree's
-//! coherent streams and Embree's single rays (`rtcIntersect1`), the rays sent as the renderer
-//! sends them and made before the clocks start; with several passes, the median time of a
-//! whole pass, the tracers taking turns.
+//! hit-mask agreement, relative depth error, and the trace times side by side: ours,
+//! Embree's coherent streams and Embree's single rays (`rtcIntersect1`), the rays sent as
+//! the renderer sends them and made before the clocks start; with several passes, the
+//! median time of a whole pass, the tracers taking turns.
 
 use std::num::NonZeroU32;
 use std::path::{Path, PathBuf};
@@ -54,10 +54,11 @@ pub struct Verification {
 pub struct VerifyOptions {
     /// Times every ray is traced each way (ours, Embree's streams, Embree's single rays).
     /// Each round of rays is traced this many times each way in turns, the way going first
-    /// rotating from pass to pass, and a way's time is its median pass; the answers compared are the first pass's (the
-    /// tracers are deterministic). One pass (the default) times cold caches and a
-    /// single spell of the machine; on a small image that is a few milliseconds, which a
-    /// busy neighbour or a thread's wake-up moves by a tenth or more.
+    /// rotating from pass to pass, and a way's time is its median pass; the answers
+    /// compared are the first pass's (the tracers are deterministic). One pass (the
+    /// default) times cold caches and a single spell of the machine; on a small image that
+    /// is a few milliseconds, which a busy neighbour or a thread's wake-up moves by a tenth
+    /// or more.
     pub passes: NonZeroU32,
 }
 
@@ -242,10 +243,10 @@ fn trace_all<A: Tracer, B: Tracer>(
             })
             .collect();
         for (pass, pass_seconds) in seconds.iter_mut().enumerate() {
+            // The first pass's distances are the ones compared.
+            let first = pass == 0;
             for turn in 0..TIMED {
                 let way = (pass + turn) % TIMED;
-                // The first pass's distances are the ones compared.
-                let first = pass == 0;
                 pass_seconds[way] += match way {
                     0 => trace_round(&rays, first.then_some(&mut ours_t), |rays, hits| {
                         ours.closest_hits(rays, hits)
