@@ -165,9 +165,9 @@ pub struct VerifyArgs {
     #[arg(long, value_name = "N")]
     pub threads: Option<NonZeroUsize>,
     /// Times every ray is traced each way (ours, Embree's streams, Embree's single rays),
-    /// in turns (the first rotating); the trace times reported are each way's median pass.
-    /// One pass times cold caches and one spell of the machine: on small images, take
-    /// several.
+    /// in turns: ours before each of Embree's ways, whose order alternates. The trace times
+    /// reported are each way's median pass. One pass times cold caches and one spell of
+    /// the machine: on small images, take several.
     #[arg(long, value_name = "N", default_value = "1")]
     pub passes: NonZeroU32,
     /// Largest fraction of rays where exactly one tracer hits.
