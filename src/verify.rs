@@ -52,11 +52,11 @@ pub struct Verification {
 /// How [`verify_with`] times the tracers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct VerifyOptions {
-    /// Times every ray is traced each way (ours, Embree's streams, Embree's single rays).
-    /// Each round of rays is traced this many times each way in turns, ours before each of
-    /// Embree's ways (whose order alternates), so that no way follows another through the
-    /// same tree; a way's time is its median pass, and the answers compared are the first
-    /// pass's (the tracers are deterministic). One pass (the default) times cold caches
+    /// Passes over every ray. A pass traces each round of rays with ours, one of Embree's
+    /// ways (streams, single rays), ours again and Embree's other way, which goes first
+    /// alternating, so that no way follows another through the same tree. A way's time is
+    /// its median pass (ours: the mean of its two traces in each), and the answers
+    /// compared are the first pass's (the tracers are deterministic). One pass (the default) times cold caches
     /// and a single spell of the machine; on a small image that is a few milliseconds,
     /// which a busy neighbour or a thread's wake-up moves by a tenth or more.
     pub passes: NonZeroU32,

@@ -164,10 +164,10 @@ pub struct VerifyArgs {
     /// Worker threads for both tracers (default: all cores).
     #[arg(long, value_name = "N")]
     pub threads: Option<NonZeroUsize>,
-    /// Times every ray is traced each way (ours, Embree's streams, Embree's single rays),
-    /// in turns: ours before each of Embree's ways, whose order alternates. The trace times
-    /// reported are each way's median pass. One pass times cold caches and one spell of
-    /// the machine: on small images, take several.
+    /// Passes: each traces every ray with ours, one of Embree's ways (streams, single
+    /// rays), ours again and Embree's other way. The trace times reported are each way's
+    /// median pass. One pass times cold caches and one spell of the machine: on small
+    /// images, take several.
     #[arg(long, value_name = "N", default_value = "1")]
     pub passes: NonZeroU32,
     /// Largest fraction of rays where exactly one tracer hits.
