@@ -156,6 +156,15 @@ impl Visits {
     /// reaching fewer (its rays mostly miss) neither starts nor ends a spell of groups
     /// traced one by one.
     pub const JUDGED_FROM: u32 = 16;
+    /// Fewest entered leaves from which a packet's rays may be
+    /// [`scattered`](Visits::scattered). Where a wasteful packet straddles a mesh's edge,
+    /// most of its rays miss and the rest enter a few leaves, one ray each: on the
+    /// bench's 320x180 torus in the renderer's order, the packets that began the spells
+    /// entered 7, 5 and 3 leaves. Counted as not scattered (when this was
+    /// [`Visits::JUDGED_FROM`]), they sent every spell one by one, and the view's batch
+    /// queries ran 10–15% slower than side by side (DEVELOPERS.md, "Rays that share no
+    /// leaves are traced side by side"). A packet that entered none still says nothing.
+    pub const SCATTERED_FROM: u32 = 4;
     /// Fewest leaves from which a packet may be [`wasteful`](Visits::wasteful): one per
     /// ray of a full packet. Timing each packet of `raybatch bench`'s full-HD torus
     /// (through the lens and not) against its rays one by one (a probe, not kept), the
@@ -189,9 +198,9 @@ impl Visits {
             && self.leaves > Self::MOST_LEAVES_PER_ENTRY * self.entries
     }
 
-    /// Whether the rays entered at least [`Visits::JUDGED_FROM`] leaves and hardly any of
-    /// them with more than one ray (at most 1/16 more rays than leaves entered): the rays
-    /// share few nodes, and traced one by one, each ray's search would be a chain of
+    /// Whether the rays entered at least [`Visits::SCATTERED_FROM`] leaves and hardly any
+    /// of them with more than one ray (at most 1/16 more rays than leaves entered): the
+    /// rays share few nodes, and traced one by one, each ray's search would be a chain of
     /// cache misses of its own. So a wasteful packet over a mesh finer than the pixels
     /// (the bench's torus at 320x180: 60 leaves entered, by 60 rays, of 555 reached, on
     /// average). Through the bench's lens, where packets are wasteful because their
@@ -200,7 +209,7 @@ impl Visits {
     /// miss); counted as scattered, those made the lens row's batches 7–10% slower than
     /// one by one.
     pub fn scattered(self) -> bool {
-        self.entered >= Self::JUDGED_FROM && 16 * self.entries <= 17 * self.entered
+        self.entered >= Self::SCATTERED_FROM && 16 * self.entries <= 17 * self.entered
     }
 
     /// Whether a packet, so far, has reached at least [`Visits::GIVE_UP_FROM`] leaves and
@@ -1702,7 +1711,7 @@ mod tests {
         assert!(scattered.wasteful() && shared.wasteful());
         assert!(scattered.scattered() && !shared.scattered());
         // Rays that enter too few leaves to tell (mostly misses) are not scattered.
-        for entered in [0, Visits::JUDGED_FROM - 1] {
+        for entered in [0, Visits::SCATTERED_FROM - 1] {
             let few = Visits {
                 leaves: 200,
                 entries: entered,
@@ -1710,14 +1719,16 @@ mod tests {
             };
             assert!(few.wasteful() && !few.scattered());
         }
-        assert!(
-            Visits {
+        // A packet across a mesh's edge: most rays miss, the others each in a leaf of
+        // their own.
+        for entered in [Visits::SCATTERED_FROM, 7] {
+            let edge = Visits {
                 leaves: 200,
-                entries: Visits::JUDGED_FROM,
-                entered: Visits::JUDGED_FROM,
-            }
-            .scattered()
-        );
+                entries: entered,
+                entered,
+            };
+            assert!(edge.wasteful() && edge.scattered());
+        }
         // Each test runs on its own thread: the pacing starts fresh.
         let tree = PacedTree::Triangles;
         assert!(!super::scattered(tree));
