@@ -45,7 +45,7 @@ pub struct Verification {
     pub trace_raybatch_s: f64,
     pub trace_embree_s: f64,
     pub trace_embree_single_s: f64,
-    /// Times each tracer traced every ray ([`VerifyOptions::passes`]).
+    /// Passes over every ray ([`VerifyOptions::passes`]).
     pub passes: u32,
 }
 
@@ -56,9 +56,10 @@ pub struct VerifyOptions {
     /// ways (streams, single rays), ours again and Embree's other way, which goes first
     /// alternating, so that no way follows another through the same tree. A way's time is
     /// its median pass (ours: the mean of its two traces in each), and the answers
-    /// compared are the first pass's (the tracers are deterministic). One pass (the default) times cold caches
-    /// and a single spell of the machine; on a small image that is a few milliseconds,
-    /// which a busy neighbour or a thread's wake-up moves by a tenth or more.
+    /// compared are the first pass's (the tracers are deterministic). One pass (the
+    /// default) times cold caches and a single spell of the machine; on a small image that
+    /// is a few milliseconds, which a busy neighbour or a thread's wake-up moves by a tenth
+    /// or more.
     pub passes: NonZeroU32,
 }
 
@@ -163,9 +164,9 @@ fn verify_inner(
         depth,
         build_raybatch_s,
         build_embree_s,
-        trace_raybatch_s: traced.seconds[0],
-        trace_embree_s: traced.seconds[1],
-        trace_embree_single_s: traced.seconds[2],
+        trace_raybatch_s: traced.seconds[Way::Ours as usize],
+        trace_embree_s: traced.seconds[Way::Streams as usize],
+        trace_embree_single_s: traced.seconds[Way::Single as usize],
         passes: options.passes.get(),
     })
 }
@@ -178,8 +179,8 @@ const PIECES_PER_ROUND: usize = 16;
 
 /// What [`trace_all`] returns.
 struct Traced {
-    /// The closest-hit distance of every camera ray (NaN for a miss), ours and Embree's, the
-    /// same rays in the same order.
+    /// The closest-hit distance of every camera ray (NaN for a miss), ours and Embree's
+    /// streams', the same rays in the same order.
     ours_t: Vec<f64>,
     reference_t: Vec<f64>,
     /// The median pass's seconds: ours, Embree's streams, Embree's single rays.
