@@ -1812,7 +1812,8 @@ mod tests {
             lanes.push(LeafLanes::Sixteen);
         }
         for lanes in lanes {
-            let trace = |(blocks, bvh): &(Vec<TriangleBlock>, Bvh<f32>), rays: &[TriangleRay]| {
+            let trace = |(blocks, _, bvh): &(Vec<TriangleBlock>, Vec<u8>, Bvh<f32>),
+                         rays: &[TriangleRay]| {
                 let mut out = vec![false; rays.len()];
                 // SAFETY: the CPU has the lanes' features (checked above); the tree is shallow.
                 let visits = unsafe { any(lanes, bvh, blocks, rays, &mut out) }.unwrap();

@@ -299,6 +299,28 @@ pub fn pixel_grid(cells: u32) -> Geometry {
     }
 }
 
+/// A wedge of the unit disc cut into `slivers` triangles, each from the centre to two
+/// neighbouring points of the rim `angle` radians apart (`longest edge² / (2 · area)` is
+/// about `1 / angle`), tilted out of every axis plane: the disc `y = 0` turned by 30°
+/// about x, then by 20° about z. The float32 test's distances are worst on such triangles
+/// ([`crate::triangle::THIN_ASPECT`]).
+pub fn sliver_wedge(slivers: u32, angle: f64) -> Geometry {
+    let (a, b) = (30f64.to_radians(), 20f64.to_radians());
+    let tilt = |[x, y, z]: [f64; 3]| {
+        let (y, z) = (y * a.cos() - z * a.sin(), y * a.sin() + z * a.cos());
+        let (x, y) = (x * b.cos() - y * b.sin(), x * b.sin() + y * b.cos());
+        [x, y, z].map(|c| c as f32)
+    };
+    let rim = (0..=slivers).map(|i| {
+        let u = f64::from(i) * angle;
+        tilt([u.cos(), 0.0, u.sin()])
+    });
+    Geometry {
+        positions: std::iter::once([0.0; 3]).chain(rim).collect(),
+        triangles: (1..=slivers).map(|i| [0, i, i + 1]).collect(),
+    }
+}
+
 /// The files of `models/`, by name: what `cargo run --example make_models` writes.
 pub fn model_files() -> Vec<(&'static str, Vec<u8>)> {
     let icosphere = to_obj(
@@ -319,6 +341,14 @@ pub fn model_files() -> Vec<(&'static str, Vec<u8>)> {
                 to_obj(
                     &pixel_grid(64),
                     "Triangles on z = 1 with a vertex on every pixel-centre ray of a 64 x 64 default camera.\nMade by raybatch::procedural; regenerate with `cargo run --example make_models`.",
+                )
+                .into_bytes(),
+            ),
+            (
+                "sliver-wedge.obj",
+                to_obj(
+                    &sliver_wedge(2000, std::f64::consts::TAU / 200_000.0),
+                    "A wedge of the unit disc cut into 2000 slivers, each 1/200000 of a turn wide, tilted 30 degrees about x, then 20 about z.\nMade by raybatch::procedural; regenerate with `cargo run --example make_models`.",
                 )
                 .into_bytes(),
             ),

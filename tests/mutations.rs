@@ -421,7 +421,13 @@ fn mutated_mesh_files_are_read_or_refused_without_a_panic() {
 #[test]
 fn mutated_manifests_are_rendered_or_refused_without_a_panic() {
     let dir = Dir::new();
-    for model in ["icosphere.obj", "torus.obj", "pixel-grid.obj", "stack.gltf"] {
+    for model in [
+        "icosphere.obj",
+        "torus.obj",
+        "pixel-grid.obj",
+        "sliver-wedge.obj",
+        "stack.gltf",
+    ] {
         dir.write(
             &format!("models/{model}"),
             std::fs::read(repo(&format!("models/{model}"))).unwrap(),

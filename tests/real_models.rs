@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use raybatch::bvh::BuildPreset;
 use raybatch::mesh::MeshCache;
-use raybatch::triangle::{self, ShearedRay};
 use raybatch::{Manifest, Ray, Scene, SceneGeometry};
 
 use crate::util::{Dir, folder};
@@ -91,20 +90,7 @@ fn scanned_models_trace_exactly_like_brute_force() {
                 tmin: 0.0,
                 tmax: f64::INFINITY,
             };
-            let sheared = ShearedRay::new(r.origin.as_vec3(), r.direction.as_vec3());
-            let mut best: Option<f32> = None;
-            for t in &triangles {
-                if let Some(h) = triangle::intersect(
-                    &sheared,
-                    t[0],
-                    t[1],
-                    t[2],
-                    0.0,
-                    best.unwrap_or(f32::INFINITY),
-                ) {
-                    best = Some(h.t);
-                }
-            }
+            let best = crate::robustness::brute_force(&triangles, &r);
             let got = scene.closest_hit(&r).map(|h| h.t as f32);
             assert_eq!(got, best, "{}: ray {i}", model.display());
             assert_eq!(
