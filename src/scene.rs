@@ -658,20 +658,21 @@ impl Scene {
             if self.triangles.bvh.is_empty() {
                 continue;
             }
-            if self.triangles.has_thin() {
-                // Where each ray's search ends, for the hits on thin triangles.
-                let mut limits = [0f64; PACKET];
+            // Where each ray's search ends, for the hits on thin triangles (if any).
+            let thin = self.triangles.has_thin();
+            let mut limits = [0f64; PACKET];
+            if thin {
                 for (k, ray) in rays.iter().enumerate() {
                     limits[k] = out[k].map_or(ray.tmax, |h| h.t);
                 }
-                self.closest_triangles(rays, analytic, out);
+            }
+            self.closest_triangles(rays, analytic, out);
+            if thin {
                 for (k, ray) in rays.iter().enumerate() {
                     if let Some(hit) = &mut out[k] {
                         self.on_thin_triangle(ray, limits[k], hit);
                     }
                 }
-            } else {
-                self.closest_triangles(rays, analytic, out);
             }
         }
     }
