@@ -510,33 +510,21 @@ impl Scene {
         if !self.triangles.bvh.is_empty()
             && let Some((nearest, hit)) = self.nearest_triangle(ray, best.map_or(ray.tmax, |h| h.t))
         {
-            let mut found = Self::triangle_hit(nearest, hit);
-            if self.triangles.has_thin() {
-                self.on_thin_triangle(ray, best.map_or(ray.tmax, |h| h.t), &mut found);
-            }
-            best = Some(found);
+            self.found_triangle(ray, &mut best, nearest, hit);
         }
         best
     }
 
-    /// Gives `hit`, a hit of `ray` found looking below `tmax`, the float64 distance along
-    /// `ray` to its triangle's plane ([`triangle::plane_distance`]) if it is on a thin
-    /// triangle ([`triangle::THIN_ASPECT`]). The float32 test's distance is a sum of edge
-    /// functions over their sum, whose rounding grows as the triangle thins: on a fan of
-    /// 200,000 slivers it was off by up to 2·10⁻⁴. Where the plane's falls outside
-    /// `(ray.tmin, tmax)` (a hit within rounding of either end), the float32 distance, which
-    /// the search held inside, is kept.
-    #[inline(always)]
-    fn on_thin_triangle(&self, ray: &Ray, tmax: f64, hit: &mut Hit) {
-        if let Primitive::Triangle { slot, .. } = hit.primitive
-            && self.triangles.is_thin(slot)
-        {
-            hit.t = self.plane_distance(ray, tmax, slot, hit.t);
-        }
-    }
-
-    /// [`Scene::on_thin_triangle`]'s distance for the triangle at `slot`, else `t`.
+    /// The float64 distance along `ray` to the plane of the triangle at `slot`
+    /// ([`triangle::plane_distance`]), for a hit on a thin triangle
+    /// ([`triangle::THIN_ASPECT`]) that the float32 test put `t` away, looking below
+    /// `tmax`. The float32 distance is a sum of edge functions over their sum, whose
+    /// rounding grows as the triangle thins: on a fan of 200,000 slivers it was off by up
+    /// to 2·10⁻⁴. Where the plane's distance falls outside `(ray.tmin, tmax)` (a hit within
+    /// rounding of either end), `t`, which the search held inside, is kept. Out of line, so
+    /// that the batch queries' callbacks for each hit stay small enough to inline.
     #[cold]
+    #[inline(never)]
     fn plane_distance(&self, ray: &Ray, tmax: f64, slot: u32, t: f64) -> f64 {
         let (block, lane) = self.slot(slot);
         let vertices = [0, 1, 2].map(|k| block.vertex(lane, k));
@@ -658,29 +646,14 @@ impl Scene {
             if self.triangles.bvh.is_empty() {
                 continue;
             }
-            // Where each ray's search ends, for the hits on thin triangles (if any).
-            let thin = self.triangles.has_thin();
-            let mut limits = [0f64; PACKET];
-            if thin {
-                for (k, ray) in rays.iter().enumerate() {
-                    limits[k] = out[k].map_or(ray.tmax, |h| h.t);
-                }
-            }
             self.closest_triangles(rays, analytic, out);
-            if thin {
-                for (k, ray) in rays.iter().enumerate() {
-                    if let Some(hit) = &mut out[k] {
-                        self.on_thin_triangle(ray, limits[k], hit);
-                    }
-                }
-            }
         }
     }
 
     /// The closest triangle hits of up to [`PACKET`] rays into `out`, each ray looking
     /// below its hit there if any (`analytic`: the scene has planes or spheres), else below
-    /// its `tmax`; at the float32 test's distances. As a packet, side by side or one by
-    /// one, as the pacing decides.
+    /// its `tmax` ([`Scene::found_triangle`]). As a packet, side by side or one by one, as
+    /// the pacing decides.
     #[inline(always)]
     fn closest_triangles(&self, rays: &[Ray], analytic: bool, out: &mut [Option<Hit>]) {
         let prepared = if analytic {
@@ -698,7 +671,7 @@ impl Scene {
                 &self.triangles.bvh,
                 &self.triangles.blocks,
                 prepared,
-                |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
+                |k, nearest, hit| self.found_triangle(&rays[k], &mut out[k], nearest, hit),
             )
         }) {
             GroupTrace::Packet => return,
@@ -709,7 +682,7 @@ impl Scene {
                         &self.triangles.bvh,
                         &self.triangles.blocks,
                         prepared,
-                        |k, nearest, hit| out[k] = Some(Self::triangle_hit(nearest, hit)),
+                        |k, nearest, hit| self.found_triangle(&rays[k], &mut out[k], nearest, hit),
                     )
                 };
                 return;
@@ -719,9 +692,24 @@ impl Scene {
         for (k, ray) in rays.iter().enumerate() {
             let tmax = out[k].map_or(ray.tmax, |h| h.t);
             if let Some((nearest, hit)) = self.nearest_triangle(ray, tmax) {
-                out[k] = Some(Self::triangle_hit(nearest, hit));
+                self.found_triangle(ray, &mut out[k], nearest, hit);
             }
         }
+    }
+
+    /// Puts the closest triangle hit of `ray` in `out`, whose hit (if any) bounded the
+    /// search: at the float32 test's distance, or on a thin triangle at its plane's
+    /// ([`Scene::plane_distance`]).
+    #[inline(always)]
+    fn found_triangle(&self, ray: &Ray, out: &mut Option<Hit>, nearest: Nearest, hit: TriangleHit) {
+        let mut t = f64::from(nearest.t);
+        if self.triangles.is_thin(nearest.slot) {
+            t = self.plane_distance(ray, out.map_or(ray.tmax, |h| h.t), nearest.slot, t);
+        }
+        *out = Some(Hit {
+            t,
+            ..Self::triangle_hit(nearest, hit)
+        });
     }
 
     /// Whether [`Scene::closest_hits`] can trace these rays (at most one packet's worth) as
