@@ -1520,7 +1520,8 @@ pub(crate) fn build_triangles(
             (block, thin)
         })
         .unzip();
-    // Most meshes have no thin triangle: then no hit looks its triangle up.
+    // Most meshes have no thin triangle: then `TriangleTree::is_thin` stops at the empty
+    // list's length.
     let thin = if thin.iter().any(|&lanes| lanes != 0) {
         thin
     } else {
