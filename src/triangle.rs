@@ -242,8 +242,9 @@ pub fn is_degenerate(t: &[[f32; 3]; 3]) -> bool {
 /// ([`plane_distance`]). The float32 distance is a sum of edge functions over their sum,
 /// whose rounding grows with this ratio. Over random rays at least 11.5° off the plane its
 /// largest relative error was 4.3·10⁻⁷ at 16 (as at 2, a right triangle's ratio), 1·10⁻⁶ at
-/// 64, 2·10⁻⁵ at 1024 and 8·10⁻⁴ at 32,768 (100,000 rays each; a test checks 16 and 1024).
-/// The scanned models of BENCHMARKS.md have at most 1.2% of their triangles past 16.
+/// 64, 2·10⁻⁵ at 1024 and 8·10⁻⁴ at 32,768 (a probe of 100,000 rays each, not kept; a test
+/// checks 16 and 1024). The scanned models of BENCHMARKS.md have at most 1.2% of their
+/// triangles past 16.
 pub const THIN_ASPECT: f64 = 16.0;
 
 /// Whether `longest edge² > THIN_ASPECT · 2 · area` for a stored triangle (see

@@ -1843,10 +1843,6 @@ fn slivers_are_hit_at_the_distance_of_their_planes_on_every_path() {
     }
     float32_errors.sort_by(f64::total_cmp);
     let float32_p90 = float32_errors[float32_errors.len() * 9 / 10];
-    eprintln!(
-        "float32 p90 {float32_p90:e} max {:e}",
-        float32_errors.last().unwrap()
-    );
     assert!(
         float32_p90 > 1e-6,
         "the float32 test's p90 error {float32_p90:e}"
