@@ -71,6 +71,13 @@ fn unit(v: DVec3) -> DVec3 {
     }
 }
 
+/// How far outside a box [`Camera::misses_box`] must see the rays pass, relative to the
+/// largest coordinate of the camera's origin and of the box's corners. The rays the
+/// triangles meet are rounded to float32 (about 1e-7 of those coordinates, and the
+/// watertight test's own rounding about as much); the margin covers that a thousand
+/// times over and grows the box by a ten-thousandth.
+pub const MISS_MARGIN: f64 = 1e-4;
+
 /// A camera bound to an image size.
 #[derive(Debug, Clone, Copy)]
 pub struct Camera {
@@ -242,6 +249,69 @@ impl Camera {
             tmin: 0.0,
             tmax: f64::INFINITY,
         }
+    }
+
+    /// Whether every pinhole ray through screen coordinates `u0 ≤ u ≤ u1`, `v0 ≤ v ≤ v1`
+    /// (see [`Camera::screen_u`]) provably passes outside the box from `min` to `max`
+    /// grown by [`MISS_MARGIN`]; `true` for an empty box (`min > max` on an axis). `false`
+    /// whenever that cannot be shown: a camera with a lens, numbers that are not finite.
+    ///
+    /// Each such ray lies in the cone from the origin spanned by the four corners'
+    /// directions `u · right + v · up + forward` (a direction is affine in `u` and `v`), so
+    /// inside each half-space bounded by the plane through two neighbouring corners that
+    /// holds the other two, and inside the half-space in front of the origin along the
+    /// corners' sum; the rays miss the box when it lies wholly outside one of these.
+    pub fn misses_box(
+        &self,
+        [u0, u1]: [f64; 2],
+        [v0, v1]: [f64; 2],
+        [min, max]: [DVec3; 2],
+    ) -> bool {
+        if self.lens.is_some() {
+            return false;
+        }
+        if (0..3).any(|axis| min[axis] > max[axis]) {
+            return true;
+        }
+        let f = &self.frame;
+        let corner = |u: f64, v: f64| u * f.right + v * f.up + f.forward;
+        let corners = [
+            corner(u0, v0),
+            corner(u1, v0),
+            corner(u1, v1),
+            corner(u0, v1),
+        ];
+        let scale = (f.origin.abs().max_element())
+            .max(min.abs().max_element())
+            .max(max.abs().max_element());
+        let grow = DVec3::splat(MISS_MARGIN * scale);
+        let (low, high) = (min - grow, max + grow);
+        // The grown box's centre seen from the origin, and its half extent.
+        let centre = (low + high) * 0.5 - f.origin;
+        let half = (high - low) * 0.5;
+        if !(centre.is_finite() && half.is_finite() && corners.iter().all(|c| c.is_finite())) {
+            return false;
+        }
+        // Whether the box's farthest reach along `normal` stays on its negative side.
+        let beyond = |normal: DVec3| normal.dot(centre) + normal.abs().dot(half) < 0.0;
+        // Behind the camera: the corners' sum points into the cone when every corner is
+        // on its positive side.
+        let axis = corners.iter().sum::<DVec3>();
+        if corners.iter().all(|c| c.dot(axis) > 0.0) && beyond(axis) {
+            return true;
+        }
+        (0..4).any(|i| {
+            let mut normal = corners[i].cross(corners[(i + 1) % 4]);
+            // Turned into the cone: the other two corners on its positive side (the
+            // corners go round one way or the other as the frame is left- or
+            // right-handed).
+            let [a, b] = [2, 3].map(|k| normal.dot(corners[(i + k) % 4]));
+            if a < 0.0 && b < 0.0 {
+                normal = -normal;
+            }
+            let inward = (a > 0.0 && b > 0.0) || (a < 0.0 && b < 0.0);
+            inward && beyond(normal)
+        })
     }
 
     /// The ray from lens point `lens` (of `[0, 1)²`) through the point of the focus plane
@@ -954,5 +1024,146 @@ mod tests {
             let t0 = -centre.origin.z / centre.direction.z;
             assert!((ray.at(t) - centre.at(t0)).length() < 1e-12, "{lens:?}");
         }
+    }
+
+    /// Whether the ray from `origin` along `direction` (`t ≥ 0`) enters the box from
+    /// `low` to `high`, in float64 slabs.
+    fn enters(origin: DVec3, direction: DVec3, low: DVec3, high: DVec3) -> bool {
+        let (mut near, mut far) = (0.0f64, f64::INFINITY);
+        for axis in 0..3 {
+            let (o, d) = (origin[axis], direction[axis]);
+            if d == 0.0 {
+                if o < low[axis] || o > high[axis] {
+                    return false;
+                }
+                continue;
+            }
+            let (a, b) = ((low[axis] - o) / d, (high[axis] - o) / d);
+            near = near.max(a.min(b));
+            far = far.min(a.max(b));
+        }
+        near <= far
+    }
+
+    /// Random cameras (look-at, and bases used as given: skewed, short, long), regions of
+    /// their screens (pixel rectangles, as the render loop asks) and boxes, at several
+    /// scales and distances from the origin. A box around a point of one of the region's
+    /// rays (a corner's, an edge's or an inner one) is never said to be missed; of the
+    /// boxes put anywhere, none said to be missed is entered by any of the region's rays
+    /// sampled along its edges and inside, and many are said to be missed.
+    #[test]
+    fn misses_box_holds_only_where_no_ray_of_the_region_enters_the_box() {
+        use crate::test_random::XorShift;
+        fn uniform(random: &mut XorShift, low: f64, high: f64) -> f64 {
+            low + (high - low) * random.unit_f64()
+        }
+        fn vector(random: &mut XorShift, length: f64) -> DVec3 {
+            DVec3::from_array([(); 3].map(|_| uniform(random, -1.0, 1.0))) * length
+        }
+        let random = &mut XorShift::new(0x5eed_b0c5);
+        let (mut anywhere, mut missed) = (0, 0);
+        for case in 0..4000 {
+            let scale = [1e-3, 1.0, 1e3][case % 3];
+            let offset = DVec3::splat([0.0, 1e4][case / 3 % 2] * scale);
+            let origin = offset + vector(random, 10.0 * scale);
+            let frame = if case % 4 == 0 {
+                CameraFrame {
+                    origin,
+                    right: vector(random, 2.0),
+                    up: vector(random, 2.0),
+                    forward: vector(random, 2.0),
+                }
+            } else {
+                let at = offset + vector(random, 5.0 * scale);
+                let vfov = 1.0 + 178.0 * (case as f64 * 0.618_034).fract();
+                match look_at_frame(origin, at, DVec3::Y, vfov) {
+                    Some(frame) => frame,
+                    None => continue,
+                }
+            };
+            let (width, height) = (1 + case as u32 * 37 % 700, 1 + case as u32 * 53 % 500);
+            let camera = Camera::new(&pinhole(frame), width, height);
+            let x0 = (case as u32 * 7919) % width;
+            let y0 = (case as u32 * 104_729) % height;
+            let (w, h) = (
+                1 + (case as u32 % 8).min(width - x0 - 1),
+                1 + (case as u32 / 8 % 8),
+            );
+            let h = h.min(height - y0);
+            let (x1, y1) = (x0 + w, y0 + h);
+            let u = [camera.screen_u(x0, 0.0), camera.screen_u(x1, 0.0)];
+            let v = [camera.screen_v(y1, 0.0), camera.screen_v(y0, 0.0)];
+            // The region's rays: its corners, points along its edges, points inside.
+            let mut samples = Vec::new();
+            for k in 0..=8 {
+                let a = f64::from(k) / 8.0;
+                for (fx, fy) in [(a, 0.0), (a, 1.0), (0.0, a), (1.0, a)] {
+                    samples.push((fx, fy));
+                }
+            }
+            for _ in 0..16 {
+                samples.push((uniform(random, 0.0, 1.0), uniform(random, 0.0, 1.0)));
+            }
+            let rays: Vec<Ray> = samples
+                .iter()
+                .map(|&(fx, fy)| {
+                    let sx = f64::from(x0) + fx * f64::from(w);
+                    let sy = f64::from(y0) + fy * f64::from(h);
+                    let (px, py) = (
+                        sx.floor().min(f64::from(x1 - 1)),
+                        sy.floor().min(f64::from(y1 - 1)),
+                    );
+                    camera.ray(px as u32, py as u32, sx - px, sy - py, (0.5, 0.5))
+                })
+                .collect();
+
+            // A box around a point of one of the rays: entered, so never missed.
+            let ray = rays[case % rays.len()];
+            let point = ray.at(uniform(random, 0.01, 100.0) * scale);
+            let half = DVec3::splat(uniform(random, 1e-9, 1.0) * scale);
+            assert!(
+                enters(ray.origin, ray.direction, point - half, point + half),
+                "case {case}: the reference"
+            );
+            assert!(
+                !camera.misses_box(u, v, [point - half, point + half]),
+                "case {case}: a box on a ray of the region"
+            );
+
+            // A box anywhere.
+            let centre = offset + vector(random, 50.0 * scale);
+            let half = vector(random, 5.0 * scale).abs();
+            let (low, high) = (centre - half, centre + half);
+            anywhere += 1;
+            if camera.misses_box(u, v, [low, high]) {
+                missed += 1;
+                for (ray, sample) in rays.iter().zip(&samples) {
+                    assert!(
+                        !enters(ray.origin, ray.direction, low, high),
+                        "case {case}: a ray at {sample:?} of the region enters a missed box"
+                    );
+                }
+            }
+        }
+        assert!(missed * 4 > anywhere, "{missed} of {anywhere} boxes missed");
+    }
+
+    #[test]
+    fn misses_box_says_nothing_through_a_lens_and_everything_misses_an_empty_box() {
+        let frame = look_at_frame(DVec3::new(0.0, 0.0, 5.0), DVec3::ZERO, DVec3::Y, 40.0).unwrap();
+        let behind = [DVec3::new(-1.0, -1.0, 9.0), DVec3::new(1.0, 1.0, 11.0)];
+        let region = ([-0.1, 0.1], [-0.1, 0.1]);
+        let pinhole = Camera::new(&pinhole(frame), 64, 64);
+        assert!(pinhole.misses_box(region.0, region.1, behind));
+        let lens = Some(ThinLens {
+            radius: 0.1,
+            focus_distance: 5.0,
+        });
+        let through_lens = Camera::new(&CameraDesc { frame, lens }, 64, 64);
+        assert!(!through_lens.misses_box(region.0, region.1, behind));
+        let empty = [DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)];
+        assert!(pinhole.misses_box(region.0, region.1, empty));
+        let not_finite = [DVec3::splat(f64::NAN), DVec3::splat(1.0)];
+        assert!(!pinhole.misses_box(region.0, region.1, not_finite));
     }
 }
