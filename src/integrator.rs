@@ -17,6 +17,14 @@ use crate::scene::{Hit, Tracer};
 pub trait Integrator: Sync {
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb;
 
+    /// The value of a ray that hits nothing, when it is the same for every ray (the
+    /// background); `None` when it depends on the ray. Where it is known, the render loop
+    /// gives it to the rays of a tile that provably miss everything, without tracing
+    /// them ([`crate::scene::Tracer::bounds`]).
+    fn miss(&self) -> Option<Rgb> {
+        None
+    }
+
     /// The values of many camera rays, `out[i]` for `rays[i]`: the same as [`value`] for
     /// each, but integrators that ask one query per ray ask them all at once, so that the
     /// tracer can trace coherent rays together.
@@ -59,6 +67,10 @@ impl HitIntegrator {
 }
 
 impl Integrator for HitIntegrator {
+    fn miss(&self) -> Option<Rgb> {
+        Some(self.background)
+    }
+
     #[inline]
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
         self.of(scene.any_hit(ray))
@@ -92,6 +104,10 @@ impl DepthIntegrator {
 }
 
 impl Integrator for DepthIntegrator {
+    fn miss(&self) -> Option<Rgb> {
+        Some(self.background)
+    }
+
     #[inline]
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
         self.of(scene.closest_hit(ray))
@@ -119,6 +135,10 @@ impl NormalIntegrator {
 }
 
 impl Integrator for NormalIntegrator {
+    fn miss(&self) -> Option<Rgb> {
+        Some(self.background)
+    }
+
     #[inline]
     fn value<T: Tracer>(&self, scene: &T, ray: &Ray) -> Rgb {
         self.of(scene.closest_hit(ray).map(|hit| scene.normal(ray, &hit)))

@@ -64,6 +64,24 @@ impl View {
         &self.camera
     }
 
+    /// Whether every ray of `tile` (of the band starting at row `y0`), whatever its
+    /// sample's offset in the pixel, provably passes outside the box `bounds` (see
+    /// [`Camera::misses_box`]).
+    pub fn tile_misses(&self, tile: &Tile, y0: u32, bounds: [DVec3; 2]) -> bool {
+        let camera = &self.camera;
+        let (x, y) = (tile.x0, y0 + tile.dy0);
+        // The tile's pixel edges: offsets range over [0, 1).
+        let u = [
+            camera.screen_u(x, 0.0),
+            camera.screen_u(x + tile.width, 0.0),
+        ];
+        let v = [
+            camera.screen_v(y + tile.height, 0.0),
+            camera.screen_v(y, 0.0),
+        ];
+        camera.misses_box(u, v, bounds)
+    }
+
     /// Samples per pixel.
     pub fn spp(&self) -> u32 {
         self.sampler.spp()
@@ -318,7 +336,9 @@ pub fn groups(width: u32, rows: u32) -> impl Iterator<Item = Tile> {
 
 /// Renders every pixel of `image` with one integrator, specialized at compile time. Rays
 /// go to the integrator one packet at a time: the same sample of an 8 × 8 group of
-/// pixels, so that they are coherent.
+/// pixels, so that they are coherent. A group whose rays all pass outside the tracer's
+/// box ([`Tracer::bounds`], [`View::tile_misses`]) is not traced: each of its rays takes
+/// the integrator's value for a miss ([`Integrator::miss`]), the same bits a trace gives.
 pub fn render_with<T: Tracer, I: Integrator>(
     scene: &T,
     integrator: &I,
@@ -328,6 +348,9 @@ pub fn render_with<T: Tracer, I: Integrator>(
 ) {
     let width = image.width;
     let spp = view.spp();
+    // The value of a miss and the box that holds everything a ray can hit, when both are
+    // known.
+    let misses = integrator.miss().zip(scene.bounds());
     image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
         let rows = band.rows();
         // One group's buffers, reused by every group (each ray is written before use):
@@ -344,18 +367,35 @@ pub fn render_with<T: Tracer, I: Integrator>(
         let mut shuffles = [[0; MOST_LENS_CELLS as usize]; GROUP];
         for tile in groups(width, rows) {
             let n = tile.pixels(&mut pixels);
+            // Where every ray of the tile passes outside everything it could hit, each
+            // takes the integrator's value for a miss, untraced.
+            let missed = misses.filter(|&(_, b)| view.tile_misses(&tile, band.y0, b));
+            let missed = missed.map(|(value, _)| value);
             if spp == 1 {
-                view.rays(&pixels[..n], band.y0, 0, &mut rays[..n]);
-                integrator.values(scene, &rays[..n], &mut values[..n]);
+                match missed {
+                    Some(value) => values[..n].fill(value),
+                    None => {
+                        view.rays(&pixels[..n], band.y0, 0, &mut rays[..n]);
+                        integrator.values(scene, &rays[..n], &mut values[..n]);
+                    }
+                }
                 band.set_tile(&tile, &values[..n]);
                 continue;
             }
             let mut sums = [[0.0f64; 3]; GROUP];
-            let (hashes, shuffles) = view.group_numbers(&pixels[..n], band.y0, &mut shuffles);
+            // Untraced values are summed as traced ones are, so the mean has the same bits.
+            if let Some(value) = missed {
+                values[..n].fill(value);
+            }
+            let numbers = missed
+                .is_none()
+                .then(|| view.group_numbers(&pixels[..n], band.y0, &mut shuffles));
             for s in 0..spp {
-                let numbers = (&pixels[..n], band.y0, &hashes, shuffles);
-                view.rays_hashed(numbers, s, &mut rays[..n]);
-                integrator.values(scene, &rays[..n], &mut values[..n]);
+                if let Some((hashes, shuffles)) = &numbers {
+                    let numbers = (&pixels[..n], band.y0, hashes, *shuffles);
+                    view.rays_hashed(numbers, s, &mut rays[..n]);
+                    integrator.values(scene, &rays[..n], &mut values[..n]);
+                }
                 for (sum, value) in sums.iter_mut().zip(&values[..n]) {
                     for c in 0..3 {
                         sum[c] += value[c];

@@ -12,7 +12,7 @@ use glam::{DMat4, DVec3, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 use rayon::prelude::*;
 
-use crate::bvh::{self, BoxRay, BuildPreset, Bvh};
+use crate::bvh::{self, Bounds, BoxRay, BuildPreset, Bvh};
 use crate::collapse::LeafCost;
 use crate::error::{Error, MeshError};
 use crate::hint::AnyHitHint;
@@ -277,6 +277,14 @@ pub trait Tracer: Sync {
 
     /// Primitive counts and memory of what was built.
     fn counts(&self) -> SceneCounts;
+
+    /// A box (`[min, max]`) holding every primitive this tracer can report a hit on, empty
+    /// (`min > max`) when there is none; `None` when no box does (planes) or the tracer
+    /// does not say. The render loop traces no ray of a tile whose rays all pass outside
+    /// it ([`crate::camera::Camera::misses_box`]).
+    fn bounds(&self) -> Option<[DVec3; 2]> {
+        None
+    }
 }
 
 /// [`Tracer::normals`] by [`Tracer::normal`], one hit at a time.
@@ -327,6 +335,8 @@ pub struct Scene {
     /// How the batch queries trace groups of coherent rays.
     grouping: Grouping,
     counts: SceneCounts,
+    /// [`Tracer::bounds`]: the triangles' and spheres' trees' boxes; `None` with planes.
+    bounds: Option<[DVec3; 2]>,
 }
 
 impl Scene {
@@ -381,7 +391,17 @@ impl Scene {
                 + sphere_order.len() * (std::mem::size_of::<Sphere>() + 4)
                 + sphere_bvh.memory_bytes(),
         };
+        // Both trees' boxes hold their primitives (the spheres' rounded outward).
+        let triangle_box = triangles.bvh.bounds();
+        let boxes = sphere_bvh.bounds().union(&Bounds {
+            min: triangle_box.min.map(f64::from),
+            max: triangle_box.max.map(f64::from),
+        });
+        let bounds = planes
+            .is_empty()
+            .then(|| [boxes.min, boxes.max].map(DVec3::from_array));
         Scene {
+            bounds,
             planes: planes.clone(),
             spheres: sphere_order,
             sphere_ids,
@@ -1133,6 +1153,10 @@ impl Tracer for Scene {
 
     fn counts(&self) -> SceneCounts {
         self.counts
+    }
+
+    fn bounds(&self) -> Option<[DVec3; 2]> {
+        self.bounds
     }
 }
 

@@ -1,8 +1,9 @@
 //! What a job does not do because its scene does not need it: no mesh read or triangle
 //! tree without meshes, no sphere tree without spheres, no closest-hit search or normals
-//! for `hit`, a mesh shared by a batch read and built once, the last job's meshes let go
-//! before its build, no reinsertion in a triangle tree that too few rays will cross. (glTF images never being decoded is
-//! `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
+//! for `hit`, no ray traced in a tile whose rays all pass outside the scene's box, a mesh
+//! shared by a batch read and built once, the last job's meshes let go before its build,
+//! no reinsertion in a triangle tree that too few rays will cross. (glTF images never
+//! being decoded is `meshes::glb_external_and_sparse_buffers_and_unread_images`.)
 
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
@@ -59,6 +60,29 @@ struct Counting<'a> {
     any: AtomicUsize,
     single: AtomicUsize,
     normals: AtomicUsize,
+    /// Whether the render loop is told the scene's box ([`Tracer::bounds`]).
+    bounded: bool,
+}
+
+impl<'a> Counting<'a> {
+    fn new(scene: &'a Scene, bounded: bool) -> Counting<'a> {
+        Counting {
+            scene,
+            closest: AtomicUsize::new(0),
+            any: AtomicUsize::new(0),
+            single: AtomicUsize::new(0),
+            normals: AtomicUsize::new(0),
+            bounded,
+        }
+    }
+
+    /// Rays asked about, in batches or one by one.
+    fn rays(&self) -> usize {
+        [&self.closest, &self.any, &self.single]
+            .iter()
+            .map(|count| count.load(Relaxed))
+            .sum()
+    }
 }
 
 impl Tracer for Counting<'_> {
@@ -88,6 +112,9 @@ impl Tracer for Counting<'_> {
     fn counts(&self) -> SceneCounts {
         self.scene.counts()
     }
+    fn bounds(&self) -> Option<[DVec3; 2]> {
+        self.bounded.then(|| self.scene.bounds()).flatten()
+    }
 }
 
 #[test]
@@ -107,13 +134,8 @@ fn hit_asks_only_whether_anything_is_hit_all_ask_in_batches_and_only_normal_comp
             &dir,
             &format!(r#"{{{base}, "integrator": {{"type": "{integrator}"}}}}"#),
         );
-        let counting = Counting {
-            scene: &scene,
-            closest: AtomicUsize::new(0),
-            any: AtomicUsize::new(0),
-            single: AtomicUsize::new(0),
-            normals: AtomicUsize::new(0),
-        };
+        // Told no box, so every tile is traced.
+        let counting = Counting::new(&scene, false);
         raybatch::render::render(&counting, &manifest, &|_| {}).unwrap();
         assert_eq!(counting.closest.into_inner(), closest, "{integrator}");
         assert_eq!(counting.any.into_inner(), any, "{integrator}");
@@ -121,6 +143,127 @@ fn hit_asks_only_whether_anything_is_hit_all_ask_in_batches_and_only_normal_comp
         assert_eq!(counting.single.into_inner(), 0, "{integrator}");
         assert_eq!(counting.normals.into_inner() > 0, normals, "{integrator}");
     }
+}
+
+#[test]
+fn tiles_whose_rays_all_pass_outside_the_scene_are_not_traced() {
+    let dir = Dir::new();
+    dir.write("tetra.obj", TETRAHEDRON);
+    let (width, height) = (64, 48);
+    for integrator in ["hit", "depth", "normal"] {
+        let (manifest, scene) = scene_of(
+            &dir,
+            &format!(
+                r#"{{"image": {{"width": {width}, "height": {height}}},
+                    "integrator": {{"type": "{integrator}"}},
+                    "spheres": [{{"center": [0, 0, 5], "radius": 0.5}}],
+                    "meshes": [{{"file": "tetra.obj", "transform": {{"translate": [0.5, 0, 4]}}}}]}}"#
+            ),
+        );
+        let bounded = Counting::new(&scene, true);
+        let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
+        let everything = Counting::new(&scene, false);
+        let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
+        assert_eq!(image.to_bytes(), reference.to_bytes(), "{integrator}");
+        assert_eq!(everything.rays(), width * height, "{integrator}");
+        // The objects cover about a twentieth of the image; the tiles around them, a fifth.
+        let traced = bounded.rays();
+        assert!(
+            traced > 0 && traced * 4 < width * height,
+            "{integrator}: {traced} rays"
+        );
+        // Planes are unbounded: with one, every tile is traced.
+        let (manifest, scene) = scene_of(
+            &dir,
+            &format!(
+                r#"{{"image": {{"width": {width}, "height": {height}}},
+                    "integrator": {{"type": "{integrator}"}},
+                    "spheres": [{{"center": [0, 0, 5], "radius": 0.5}}],
+                    "planes": [{{"point": [0, -100, 0], "normal": [0, 1, 0]}}]}}"#
+            ),
+        );
+        let with_plane = Counting::new(&scene, true);
+        raybatch::render::render(&with_plane, &manifest, &|_| {}).unwrap();
+        assert_eq!(with_plane.rays(), width * height, "{integrator}");
+    }
+}
+
+/// Untraced tiles change no pixel: random views of a mesh and spheres, at scales from a
+/// thousandth to a thousand and ten thousand units from the origin, partly outside the
+/// image, through every integrator and sampler, render the same bytes whether or not the
+/// render loop is told the scene's box. Most views have tiles of both kinds.
+#[test]
+fn untraced_tiles_give_the_bytes_traced_ones_give() {
+    let dir = Dir::new();
+    let mesh = raybatch::procedural::to_obj(&raybatch::procedural::icosphere(2), "");
+    dir.write("ball.obj", mesh);
+    let integrators = ["hit", "depth", "normal"];
+    let samplers = [
+        r#"{"type": "center"}"#,
+        r#"{"type": "stratified", "spp": 3, "seed": 4}"#,
+        r#"{"type": "independent", "spp": 2, "seed": 9}"#,
+    ];
+    // SplitMix64, for numbers that are the same on every run.
+    let mut state = 0xb0c5_1de5_u64;
+    let mut uniform = |low: f64, high: f64| {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        low + (high - low) * ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut mixed = 0;
+    let cases = 54;
+    for case in 0..cases {
+        let scale = [1e-3, 1.0, 1e3][case % 3];
+        let offset = [0.0, 1e4][case / 3 % 2] * scale;
+        let place = |x: f64| offset + x * scale;
+        let at = [0.0, 0.0, 0.0].map(|_| place(uniform(-1.5, 1.5)));
+        let from = [0.0, 0.0, 0.0].map(|_| place(uniform(-6.0, 6.0)));
+        let vfov = uniform(20.0, 100.0);
+        let spheres = (0..2)
+            .map(|_| {
+                let c = [0.0, 0.0, 0.0].map(|_| place(uniform(-2.0, 2.0)));
+                let r = uniform(0.05, 0.5) * scale;
+                format!(
+                    r#"{{"center": [{}, {}, {}], "radius": {r}}}"#,
+                    c[0], c[1], c[2]
+                )
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
+        let json = format!(
+            r#"{{"image": {{"width": 45, "height": 31}},
+                "camera": {{"look_from": [{}, {}, {}], "look_at": [{}, {}, {}], "vfov": {vfov}}},
+                "integrator": {{"type": "{}"}}, "sampler": {},
+                "spheres": [{spheres}],
+                "meshes": [{{"file": "ball.obj",
+                             "transform": {{"scale": {scale}, "translate": [{offset}, {offset}, {offset}]}}}}]}}"#,
+            from[0],
+            from[1],
+            from[2],
+            at[0],
+            at[1],
+            at[2],
+            integrators[case % 3],
+            samplers[case / 6 % 3],
+        );
+        let (manifest, scene) = scene_of(&dir, &json);
+        let bounded = Counting::new(&scene, true);
+        let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
+        let everything = Counting::new(&scene, false);
+        let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
+        assert!(
+            image.to_bytes() == reference.to_bytes(),
+            "case {case}: {json}"
+        );
+        let (traced, all) = (bounded.rays(), everything.rays());
+        mixed += usize::from(traced > 0 && traced < all);
+    }
+    assert!(
+        mixed * 2 > cases,
+        "{mixed} of {cases} views with tiles of both kinds"
+    );
 }
 
 fn manifest(mesh: &str, translate: f64, camera_x: f64, output: &str) -> String {

@@ -27,7 +27,8 @@
 //! - `stress`: the stress suite (scale sweeps, leaks, offsets, needles, …) against its
 //!   references, and proof that it catches rays started without an offset.
 //! - `skipping`: work a scene does not need is not done (trees, closest-hit searches,
-//!   normals, rereading and rebuilding a batch's shared mesh, reinsertion).
+//!   normals, rays of tiles that miss the scene's box, rereading and rebuilding a batch's
+//!   shared mesh, reinsertion).
 //! - `real_models`: the scanned models of `../shared/models` and Debian's glTF and OBJ test
 //!   files; ignored by default (run by `.ci/run` with `--include-ignored`).
 
