@@ -18,6 +18,7 @@
 use glam::DVec3;
 
 use crate::manifest::CameraDesc;
+use crate::plane::Plane;
 use crate::ray::Ray;
 
 /// The basis camera: vectors used as given (their lengths zoom the film).
@@ -71,12 +72,88 @@ fn unit(v: DVec3) -> DVec3 {
     }
 }
 
-/// How far outside a box [`Camera::misses_box`] must see the rays pass, relative to the
-/// largest coordinate of the camera's origin and of the box's corners. The rays the
+/// How far outside a box [`ScreenRegion::misses_box`] must see the rays pass, relative to
+/// the largest coordinate of the camera's origin and of the box's corners. The rays the
 /// triangles meet are rounded to float32 (about 1e-7 of those coordinates, and the
 /// watertight test's own rounding about as much); the margin covers that a thousand
-/// times over and grows the box by a ten-thousandth.
+/// times over and grows the box by a ten-thousandth. Also how far from a plane, and how
+/// steeply away from it, [`ScreenRegion::misses_plane`] asks the rays to start and go.
 pub const MISS_MARGIN: f64 = 1e-4;
+
+/// The pinhole rays through a rectangle of the screen ([`Camera::region`]), for showing
+/// that none of them can hit something. Each lies in the cone from the origin spanned by
+/// the four corners' directions `u · right + v · up + forward` (a direction is affine in
+/// `u` and `v`), so inside each half-space bounded by the plane through two neighbouring
+/// corners that holds the other two, and in front of the origin along the corners' sum.
+#[derive(Debug, Clone, Copy)]
+pub struct ScreenRegion {
+    origin: DVec3,
+    /// The corners' directions, in order round the rectangle.
+    corners: [DVec3; 4],
+}
+
+impl ScreenRegion {
+    /// Whether every ray of the region passes outside the box from `min` to `max` grown
+    /// by [`MISS_MARGIN`]: the box lies wholly outside one of the cone's half-spaces.
+    /// `true` for an empty box (`min > max` on an axis); `false` where it cannot be shown.
+    pub fn misses_box(&self, [min, max]: [DVec3; 2]) -> bool {
+        if (0..3).any(|axis| min[axis] > max[axis]) {
+            return true;
+        }
+        let corners = &self.corners;
+        let scale = (self.origin.abs().max_element())
+            .max(min.abs().max_element())
+            .max(max.abs().max_element());
+        let grow = DVec3::splat(MISS_MARGIN * scale);
+        let (low, high) = (min - grow, max + grow);
+        // The grown box's centre seen from the origin, and its half extent.
+        let centre = (low + high) * 0.5 - self.origin;
+        let half = (high - low) * 0.5;
+        if !(centre.is_finite() && half.is_finite()) {
+            return false;
+        }
+        // Whether the box's farthest reach along `normal` stays on its negative side.
+        let beyond = |normal: DVec3| normal.dot(centre) + normal.abs().dot(half) < 0.0;
+        // Behind the origin: the corners' sum points into the cone when every corner is
+        // on its positive side.
+        let axis = corners.iter().sum::<DVec3>();
+        if corners.iter().all(|c| c.dot(axis) > 0.0) && beyond(axis) {
+            return true;
+        }
+        (0..4).any(|i| {
+            let mut normal = corners[i].cross(corners[(i + 1) % 4]);
+            // Turned into the cone: the other two corners on its positive side (the
+            // corners go round one way or the other as the frame is left- or
+            // right-handed).
+            let [a, b] = [2, 3].map(|k| normal.dot(corners[(i + k) % 4]));
+            if a < 0.0 && b < 0.0 {
+                normal = -normal;
+            }
+            let inward = (a > 0.0 && b > 0.0) || (a < 0.0 && b < 0.0);
+            inward && beyond(normal)
+        })
+    }
+
+    /// Whether every ray of the region leaves the plane behind: the origin lies off the
+    /// plane, and every corner's direction points away from it, by [`MISS_MARGIN`] of the
+    /// coordinates and of the direction's length. Such a ray meets the plane only at a
+    /// negative `t`, never with `0 ≤ tmin < t`.
+    pub fn misses_plane(&self, plane: &Plane) -> bool {
+        let Plane { point, normal } = *plane;
+        let height = (point - self.origin).dot(normal);
+        let scale = self
+            .origin
+            .abs()
+            .max_element()
+            .max(point.abs().max_element());
+        if !(height.is_finite() && height.abs() > MISS_MARGIN * scale * normal.length()) {
+            return false;
+        }
+        let side = height.signum() * normal;
+        let away = |c: &DVec3| c.dot(side) < -MISS_MARGIN * c.length() * normal.length();
+        self.corners.iter().all(away)
+    }
+}
 
 /// A camera bound to an image size.
 #[derive(Debug, Clone, Copy)]
@@ -251,27 +328,13 @@ impl Camera {
         }
     }
 
-    /// Whether every pinhole ray through screen coordinates `u0 ≤ u ≤ u1`, `v0 ≤ v ≤ v1`
-    /// (see [`Camera::screen_u`]) provably passes outside the box from `min` to `max`
-    /// grown by [`MISS_MARGIN`]; `true` for an empty box (`min > max` on an axis). `false`
-    /// whenever that cannot be shown: a camera with a lens, numbers that are not finite.
-    ///
-    /// Each such ray lies in the cone from the origin spanned by the four corners'
-    /// directions `u · right + v · up + forward` (a direction is affine in `u` and `v`), so
-    /// inside each half-space bounded by the plane through two neighbouring corners that
-    /// holds the other two, and inside the half-space in front of the origin along the
-    /// corners' sum; the rays miss the box when it lies wholly outside one of these.
-    pub fn misses_box(
-        &self,
-        [u0, u1]: [f64; 2],
-        [v0, v1]: [f64; 2],
-        [min, max]: [DVec3; 2],
-    ) -> bool {
+    /// The pinhole rays through screen coordinates `u0 ≤ u ≤ u1`, `v0 ≤ v ≤ v1` (see
+    /// [`Camera::screen_u`]), whatever their offsets in their pixels: `None` for a camera
+    /// with a lens (its rays start at points of the lens) or coordinates that are not
+    /// finite.
+    pub fn region(&self, [u0, u1]: [f64; 2], [v0, v1]: [f64; 2]) -> Option<ScreenRegion> {
         if self.lens.is_some() {
-            return false;
-        }
-        if (0..3).any(|axis| min[axis] > max[axis]) {
-            return true;
+            return None;
         }
         let f = &self.frame;
         let corner = |u: f64, v: f64| u * f.right + v * f.up + f.forward;
@@ -281,36 +344,10 @@ impl Camera {
             corner(u1, v1),
             corner(u0, v1),
         ];
-        let scale = (f.origin.abs().max_element())
-            .max(min.abs().max_element())
-            .max(max.abs().max_element());
-        let grow = DVec3::splat(MISS_MARGIN * scale);
-        let (low, high) = (min - grow, max + grow);
-        // The grown box's centre seen from the origin, and its half extent.
-        let centre = (low + high) * 0.5 - f.origin;
-        let half = (high - low) * 0.5;
-        if !(centre.is_finite() && half.is_finite() && corners.iter().all(|c| c.is_finite())) {
-            return false;
-        }
-        // Whether the box's farthest reach along `normal` stays on its negative side.
-        let beyond = |normal: DVec3| normal.dot(centre) + normal.abs().dot(half) < 0.0;
-        // Behind the camera: the corners' sum points into the cone when every corner is
-        // on its positive side.
-        let axis = corners.iter().sum::<DVec3>();
-        if corners.iter().all(|c| c.dot(axis) > 0.0) && beyond(axis) {
-            return true;
-        }
-        (0..4).any(|i| {
-            let mut normal = corners[i].cross(corners[(i + 1) % 4]);
-            // Turned into the cone: the other two corners on its positive side (the
-            // corners go round one way or the other as the frame is left- or
-            // right-handed).
-            let [a, b] = [2, 3].map(|k| normal.dot(corners[(i + k) % 4]));
-            if a < 0.0 && b < 0.0 {
-                normal = -normal;
-            }
-            let inward = (a > 0.0 && b > 0.0) || (a < 0.0 && b < 0.0);
-            inward && beyond(normal)
+        let finite = f.origin.is_finite() && corners.iter().all(|c| c.is_finite());
+        finite.then_some(ScreenRegion {
+            origin: f.origin,
+            corners,
         })
     }
 
@@ -1046,13 +1083,14 @@ mod tests {
     }
 
     /// Random cameras (look-at, and bases used as given: skewed, short, long), regions of
-    /// their screens (pixel rectangles, as the render loop asks) and boxes, at several
-    /// scales and distances from the origin. A box around a point of one of the region's
-    /// rays (a corner's, an edge's or an inner one) is never said to be missed; of the
-    /// boxes put anywhere, none said to be missed is entered by any of the region's rays
-    /// sampled along its edges and inside, and many are said to be missed.
+    /// their screens (pixel rectangles, as the render loop asks), boxes and planes, at
+    /// several scales and distances from the origin. A box around a point of one of the
+    /// region's rays (a corner's, an edge's or an inner one), or a plane through it, is
+    /// never said to be missed; of the boxes and planes put anywhere, none said to be
+    /// missed is met by any of the region's rays sampled along its edges and inside
+    /// (float64 slabs, [`Plane::intersect`]), and many are said to be missed.
     #[test]
-    fn misses_box_holds_only_where_no_ray_of_the_region_enters_the_box() {
+    fn a_region_misses_only_boxes_and_planes_that_none_of_its_rays_meets() {
         use crate::test_random::XorShift;
         fn uniform(random: &mut XorShift, low: f64, high: f64) -> f64 {
             low + (high - low) * random.unit_f64()
@@ -1061,7 +1099,7 @@ mod tests {
             DVec3::from_array([(); 3].map(|_| uniform(random, -1.0, 1.0))) * length
         }
         let random = &mut XorShift::new(0x5eed_b0c5);
-        let (mut anywhere, mut missed) = (0, 0);
+        let (mut anywhere, mut missed, mut planes_missed) = (0, 0, 0);
         for case in 0..4000 {
             let scale = [1e-3, 1.0, 1e3][case % 3];
             let offset = DVec3::splat([0.0, 1e4][case / 3 % 2] * scale);
@@ -1125,17 +1163,42 @@ mod tests {
                 enters(ray.origin, ray.direction, point - half, point + half),
                 "case {case}: the reference"
             );
+            let region = camera.region(u, v).expect("a pinhole's region");
             assert!(
-                !camera.misses_box(u, v, [point - half, point + half]),
+                !region.misses_box([point - half, point + half]),
                 "case {case}: a box on a ray of the region"
             );
+            // A plane through that point, at any angle but along the ray: crossed.
+            let normal = (vector(random, 1.0) + DVec3::X * 1e-3).normalize();
+            let plane = Plane { point, normal };
+            if ray.direction.dot(normal) != 0.0 {
+                assert!(
+                    !region.misses_plane(&plane),
+                    "case {case}: a plane a ray of the region crosses"
+                );
+            }
+
+            // A plane anywhere.
+            let plane = Plane {
+                point: offset + vector(random, 20.0 * scale),
+                normal: vector(random, 1.0).normalize(),
+            };
+            if region.misses_plane(&plane) {
+                planes_missed += 1;
+                for (ray, sample) in rays.iter().zip(&samples) {
+                    assert!(
+                        plane.intersect(ray, f64::INFINITY).is_none(),
+                        "case {case}: a ray at {sample:?} of the region crosses a missed plane"
+                    );
+                }
+            }
 
             // A box anywhere.
             let centre = offset + vector(random, 50.0 * scale);
             let half = vector(random, 5.0 * scale).abs();
             let (low, high) = (centre - half, centre + half);
             anywhere += 1;
-            if camera.misses_box(u, v, [low, high]) {
+            if region.misses_box([low, high]) {
                 missed += 1;
                 for (ray, sample) in rays.iter().zip(&samples) {
                     assert!(
@@ -1146,24 +1209,46 @@ mod tests {
             }
         }
         assert!(missed * 4 > anywhere, "{missed} of {anywhere} boxes missed");
+        assert!(
+            planes_missed * 8 > anywhere,
+            "{planes_missed} of {anywhere} planes missed"
+        );
     }
 
     #[test]
-    fn misses_box_says_nothing_through_a_lens_and_everything_misses_an_empty_box() {
+    fn a_lens_has_no_region_and_every_ray_misses_an_empty_box() {
         let frame = look_at_frame(DVec3::new(0.0, 0.0, 5.0), DVec3::ZERO, DVec3::Y, 40.0).unwrap();
         let behind = [DVec3::new(-1.0, -1.0, 9.0), DVec3::new(1.0, 1.0, 11.0)];
-        let region = ([-0.1, 0.1], [-0.1, 0.1]);
-        let pinhole = Camera::new(&pinhole(frame), 64, 64);
-        assert!(pinhole.misses_box(region.0, region.1, behind));
+        let (u, v) = ([-0.1, 0.1], [-0.1, 0.1]);
+        let region = Camera::new(&pinhole(frame), 64, 64).region(u, v).unwrap();
+        assert!(region.misses_box(behind));
         let lens = Some(ThinLens {
             radius: 0.1,
             focus_distance: 5.0,
         });
-        let through_lens = Camera::new(&CameraDesc { frame, lens }, 64, 64);
-        assert!(!through_lens.misses_box(region.0, region.1, behind));
+        assert!(
+            Camera::new(&CameraDesc { frame, lens }, 64, 64)
+                .region(u, v)
+                .is_none()
+        );
         let empty = [DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)];
-        assert!(pinhole.misses_box(region.0, region.1, empty));
+        assert!(region.misses_box(empty));
         let not_finite = [DVec3::splat(f64::NAN), DVec3::splat(1.0)];
-        assert!(!pinhole.misses_box(region.0, region.1, not_finite));
+        assert!(!region.misses_box(not_finite));
+        // A floor below a camera looking down at it; the same floor seen from below.
+        let floor = Plane {
+            point: DVec3::new(0.0, -1.0, 0.0),
+            normal: DVec3::Y,
+        };
+        assert!(!region.misses_plane(&floor));
+        let up = look_at_frame(DVec3::ZERO, DVec3::new(0.0, 5.0, 1.0), DVec3::Y, 40.0).unwrap();
+        let sky = Camera::new(&pinhole(up), 64, 64).region(u, v).unwrap();
+        assert!(sky.misses_plane(&floor));
+        // A camera on the plane says nothing.
+        let on = Plane {
+            point: DVec3::ZERO,
+            normal: DVec3::Y,
+        };
+        assert!(!sky.misses_plane(&on));
     }
 }

@@ -20,7 +20,7 @@ pub trait Integrator: Sync {
     /// The value of a ray that hits nothing, when it is the same for every ray (the
     /// background); `None` when it depends on the ray. Where it is known, the render loop
     /// gives it to the rays of a tile that provably miss everything, without tracing
-    /// them ([`crate::scene::Tracer::bounds`]).
+    /// them ([`crate::scene::Tracer::extent`]).
     fn miss(&self) -> Option<Rgb> {
         None
     }

@@ -13,7 +13,7 @@ use crate::integrator::{DepthIntegrator, HitIntegrator, Integrator, NormalIntegr
 use crate::manifest::{IntegratorDesc, Manifest};
 use crate::ray::Ray;
 use crate::sampler::{CellShuffle, MOST_LENS_CELLS, Sampler};
-use crate::scene::Tracer;
+use crate::scene::{Extent, Tracer};
 
 /// Side of the square tiles, in pixels; also the height of a parallel band.
 pub const TILE: u32 = 16;
@@ -65,9 +65,10 @@ impl View {
     }
 
     /// Whether every ray of `tile` (of the band starting at row `y0`), whatever its
-    /// sample's offset in the pixel, provably passes outside the box `bounds` (see
-    /// [`Camera::misses_box`]).
-    pub fn tile_misses(&self, tile: &Tile, y0: u32, bounds: [DVec3; 2]) -> bool {
+    /// sample's offset in the pixel, provably hits nothing of `extent`: it passes outside
+    /// the box and leaves every plane behind ([`crate::camera::ScreenRegion`]). Never
+    /// through a lens.
+    pub fn tile_misses(&self, tile: &Tile, y0: u32, extent: &Extent) -> bool {
         let camera = &self.camera;
         let (x, y) = (tile.x0, y0 + tile.dy0);
         // The tile's pixel edges: offsets range over [0, 1).
@@ -79,7 +80,11 @@ impl View {
             camera.screen_v(y + tile.height, 0.0),
             camera.screen_v(y, 0.0),
         ];
-        camera.misses_box(u, v, bounds)
+        // The region's half-spaces hold the rays' points with `t ≥ 0` only.
+        let Some(region) = camera.region(u, v).filter(|_| self.tmin >= 0.0) else {
+            return false;
+        };
+        region.misses_box(extent.bounds) && extent.planes.iter().all(|p| region.misses_plane(p))
     }
 
     /// Samples per pixel.
@@ -336,8 +341,8 @@ pub fn groups(width: u32, rows: u32) -> impl Iterator<Item = Tile> {
 
 /// Renders every pixel of `image` with one integrator, specialized at compile time. Rays
 /// go to the integrator one packet at a time: the same sample of an 8 × 8 group of
-/// pixels, so that they are coherent. A group whose rays all pass outside the tracer's
-/// box ([`Tracer::bounds`], [`View::tile_misses`]) is not traced: each of its rays takes
+/// pixels, so that they are coherent. A group whose rays all miss everything the tracer
+/// holds ([`Tracer::extent`], [`View::tile_misses`]) is not traced: each of its rays takes
 /// the integrator's value for a miss ([`Integrator::miss`]), the same bits a trace gives.
 pub fn render_with<T: Tracer, I: Integrator>(
     scene: &T,
@@ -348,9 +353,8 @@ pub fn render_with<T: Tracer, I: Integrator>(
 ) {
     let width = image.width;
     let spp = view.spp();
-    // The value of a miss and the box that holds everything a ray can hit, when both are
-    // known.
-    let misses = integrator.miss().zip(scene.bounds());
+    // The value of a miss and everything a ray can hit, when both are known.
+    let misses = integrator.miss().zip(scene.extent());
     image.bands_mut(TILE).into_par_iter().for_each(|mut band| {
         let rows = band.rows();
         // One group's buffers, reused by every group (each ray is written before use):
@@ -369,7 +373,7 @@ pub fn render_with<T: Tracer, I: Integrator>(
             let n = tile.pixels(&mut pixels);
             // Where every ray of the tile passes outside everything it could hit, each
             // takes the integrator's value for a miss, untraced.
-            let missed = misses.filter(|&(_, b)| view.tile_misses(&tile, band.y0, b));
+            let missed = misses.filter(|(_, extent)| view.tile_misses(&tile, band.y0, extent));
             let missed = missed.map(|(value, _)| value);
             if spp == 1 {
                 match missed {

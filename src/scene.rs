@@ -278,11 +278,10 @@ pub trait Tracer: Sync {
     /// Primitive counts and memory of what was built.
     fn counts(&self) -> SceneCounts;
 
-    /// A box (`[min, max]`) holding every primitive this tracer can report a hit on, empty
-    /// (`min > max`) when there is none; `None` when no box does (planes) or the tracer
-    /// does not say. The render loop traces no ray of a tile whose rays all pass outside
-    /// it ([`crate::camera::Camera::misses_box`]).
-    fn bounds(&self) -> Option<[DVec3; 2]> {
+    /// Everything this tracer can report a hit on, or `None` when it does not say. The
+    /// render loop traces no ray of a tile whose rays all miss it
+    /// ([`crate::render::View::tile_misses`]).
+    fn extent(&self) -> Option<&Extent> {
         None
     }
 }
@@ -299,6 +298,14 @@ pub fn normals_one_by_one<T: Tracer + ?Sized>(
             found(i, tracer.normal(ray, hit));
         }
     }
+}
+
+/// Everything a tracer's rays can hit ([`Tracer::extent`]): a box (`[min, max]`) holding
+/// every bounded primitive, empty (`min > max`) when there is none, and the planes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Extent {
+    pub bounds: [DVec3; 2],
+    pub planes: Vec<Plane>,
 }
 
 /// Sizes of what was built.
@@ -335,8 +342,8 @@ pub struct Scene {
     /// How the batch queries trace groups of coherent rays.
     grouping: Grouping,
     counts: SceneCounts,
-    /// [`Tracer::bounds`]: the triangles' and spheres' trees' boxes; `None` with planes.
-    bounds: Option<[DVec3; 2]>,
+    /// [`Tracer::extent`]: the triangles' and spheres' trees' boxes, and the planes.
+    extent: Extent,
 }
 
 impl Scene {
@@ -397,11 +404,12 @@ impl Scene {
             min: triangle_box.min.map(f64::from),
             max: triangle_box.max.map(f64::from),
         });
-        let bounds = planes
-            .is_empty()
-            .then(|| [boxes.min, boxes.max].map(DVec3::from_array));
+        let extent = Extent {
+            bounds: [boxes.min, boxes.max].map(DVec3::from_array),
+            planes: planes.clone(),
+        };
         Scene {
-            bounds,
+            extent,
             planes: planes.clone(),
             spheres: sphere_order,
             sphere_ids,
@@ -1155,8 +1163,8 @@ impl Tracer for Scene {
         self.counts
     }
 
-    fn bounds(&self) -> Option<[DVec3; 2]> {
-        self.bounds
+    fn extent(&self) -> Option<&Extent> {
+        Some(&self.extent)
     }
 }
 

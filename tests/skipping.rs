@@ -12,7 +12,7 @@ use glam::DVec3;
 use raybatch::bvh::BuildPreset;
 use raybatch::job::{Batch, JobOptions};
 use raybatch::mesh::MeshCache;
-use raybatch::scene::{Hit, SceneCounts, Tracer};
+use raybatch::scene::{Extent, Hit, SceneCounts, Tracer};
 use raybatch::{Manifest, Ray, Scene, SceneGeometry};
 
 use crate::util::Dir;
@@ -60,7 +60,7 @@ struct Counting<'a> {
     any: AtomicUsize,
     single: AtomicUsize,
     normals: AtomicUsize,
-    /// Whether the render loop is told the scene's box ([`Tracer::bounds`]).
+    /// Whether the render loop is told what the scene holds ([`Tracer::extent`]).
     bounded: bool,
 }
 
@@ -112,8 +112,8 @@ impl Tracer for Counting<'_> {
     fn counts(&self) -> SceneCounts {
         self.scene.counts()
     }
-    fn bounds(&self) -> Option<[DVec3; 2]> {
-        self.bounded.then(|| self.scene.bounds()).flatten()
+    fn extent(&self) -> Option<&Extent> {
+        self.bounded.then(|| self.scene.extent()).flatten()
     }
 }
 
@@ -172,26 +172,51 @@ fn tiles_whose_rays_all_pass_outside_the_scene_are_not_traced() {
             traced > 0 && traced * 4 < width * height,
             "{integrator}: {traced} rays"
         );
-        // Planes are unbounded: with one, every tile is traced.
-        let (manifest, scene) = scene_of(
-            &dir,
-            &format!(
-                r#"{{"image": {{"width": {width}, "height": {height}}},
-                    "integrator": {{"type": "{integrator}"}},
-                    "spheres": [{{"center": [0, 0, 5], "radius": 0.5}}],
-                    "planes": [{{"point": [0, -100, 0], "normal": [0, 1, 0]}}]}}"#
+        // Planes: the rays of the upper half leave a floor below behind, and but for the
+        // tiles round the sphere are not traced; every ray meets a wall ahead.
+        let pixels = width * height;
+        let half_to_seven_eighths = |traced: usize| traced * 2 > pixels && traced * 8 < 7 * pixels;
+        let all = |traced: usize| traced == pixels;
+        let cases: [(&str, &dyn Fn(usize) -> bool); 2] = [
+            (
+                r#"{"point": [0, -100, 0], "normal": [0, 1, 0]}"#,
+                &half_to_seven_eighths,
             ),
-        );
-        let with_plane = Counting::new(&scene, true);
-        raybatch::render::render(&with_plane, &manifest, &|_| {}).unwrap();
-        assert_eq!(with_plane.rays(), width * height, "{integrator}");
+            (r#"{"point": [0, 0, 100], "normal": [0, 0, -1]}"#, &all),
+        ];
+        for (plane, expected) in cases {
+            let (manifest, scene) = scene_of(
+                &dir,
+                &format!(
+                    r#"{{"image": {{"width": {width}, "height": {height}}},
+                        "integrator": {{"type": "{integrator}"}},
+                        "spheres": [{{"center": [0, 0, 5], "radius": 0.5}}],
+                        "planes": [{plane}]}}"#
+                ),
+            );
+            let bounded = Counting::new(&scene, true);
+            let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
+            let everything = Counting::new(&scene, false);
+            let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
+            assert_eq!(
+                image.to_bytes(),
+                reference.to_bytes(),
+                "{integrator} {plane}"
+            );
+            let traced = bounded.rays();
+            assert!(
+                expected(traced),
+                "{integrator} {plane}: {traced} of {pixels} rays"
+            );
+        }
     }
 }
 
-/// Untraced tiles change no pixel: random views of a mesh and spheres, at scales from a
-/// thousandth to a thousand and ten thousand units from the origin, partly outside the
-/// image, through every integrator and sampler, render the same bytes whether or not the
-/// render loop is told the scene's box. Most views have tiles of both kinds.
+/// Untraced tiles change no pixel: random views of a mesh and spheres, half of them over a
+/// floor, at scales from a thousandth to a thousand and ten thousand units from the
+/// origin, partly outside the image, through every integrator and sampler, render the
+/// same bytes whether or not the render loop is told what the scene holds. Most views
+/// have tiles of both kinds.
 #[test]
 fn untraced_tiles_give_the_bytes_traced_ones_give() {
     let dir = Dir::new();
@@ -232,11 +257,18 @@ fn untraced_tiles_give_the_bytes_traced_ones_give() {
             })
             .collect::<Vec<_>>()
             .join(", ");
+        // Half the views have a floor under the objects, tilted a little.
+        let floor = place(-1.5);
+        let planes = if case % 2 == 1 {
+            format!(r#"{{"point": [0, {floor}, 0], "normal": [0.1, 1, 0.05]}}"#)
+        } else {
+            String::new()
+        };
         let json = format!(
             r#"{{"image": {{"width": 45, "height": 31}},
                 "camera": {{"look_from": [{}, {}, {}], "look_at": [{}, {}, {}], "vfov": {vfov}}},
                 "integrator": {{"type": "{}"}}, "sampler": {},
-                "spheres": [{spheres}],
+                "spheres": [{spheres}], "planes": [{planes}],
                 "meshes": [{{"file": "ball.obj",
                              "transform": {{"scale": {scale}, "translate": [{offset}, {offset}, {offset}]}}}}]}}"#,
             from[0],
