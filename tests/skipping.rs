@@ -145,69 +145,54 @@ fn hit_asks_only_whether_anything_is_hit_all_ask_in_batches_and_only_normal_comp
     }
 }
 
+/// Renders `json` through its scene told what it holds ([`Tracer::extent`]) and told
+/// nothing; asserts the same bytes both ways and returns how many rays each traced.
+fn rays_traced_with_and_without_extent(dir: &Dir, json: &str) -> (usize, usize) {
+    let (manifest, scene) = scene_of(dir, json);
+    let bounded = Counting::new(&scene, true);
+    let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
+    let everything = Counting::new(&scene, false);
+    let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
+    assert!(image.to_bytes() == reference.to_bytes(), "{json}");
+    (bounded.rays(), everything.rays())
+}
+
 #[test]
 fn tiles_whose_rays_all_pass_outside_the_scene_are_not_traced() {
     let dir = Dir::new();
     dir.write("tetra.obj", TETRAHEDRON);
     let (width, height) = (64, 48);
-    for integrator in ["hit", "depth", "normal"] {
-        let (manifest, scene) = scene_of(
-            &dir,
-            &format!(
-                r#"{{"image": {{"width": {width}, "height": {height}}},
-                    "integrator": {{"type": "{integrator}"}},
-                    "spheres": [{{"center": [0, 0, 5], "radius": 0.5}}],
-                    "meshes": [{{"file": "tetra.obj", "transform": {{"translate": [0.5, 0, 4]}}}}]}}"#
-            ),
-        );
-        let bounded = Counting::new(&scene, true);
-        let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
-        let everything = Counting::new(&scene, false);
-        let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
-        assert_eq!(image.to_bytes(), reference.to_bytes(), "{integrator}");
-        assert_eq!(everything.rays(), width * height, "{integrator}");
+    let pixels = width * height;
+    let sphere = r#""spheres": [{"center": [0, 0, 5], "radius": 0.5}]"#;
+    let cases: [(String, &dyn Fn(usize) -> bool); 3] = [
         // The objects cover about a twentieth of the image; the tiles around them, a fifth.
-        let traced = bounded.rays();
-        assert!(
-            traced > 0 && traced * 4 < width * height,
-            "{integrator}: {traced} rays"
-        );
-        // Planes: the rays of the upper half leave a floor below behind, and but for the
-        // tiles round the sphere are not traced; every ray meets a wall ahead.
-        let pixels = width * height;
-        let half_to_seven_eighths = |traced: usize| traced * 2 > pixels && traced * 8 < 7 * pixels;
-        let all = |traced: usize| traced == pixels;
-        let cases: [(&str, &dyn Fn(usize) -> bool); 2] = [
-            (
-                r#"{"point": [0, -100, 0], "normal": [0, 1, 0]}"#,
-                &half_to_seven_eighths,
+        (
+            format!(
+                r#"{sphere}, "meshes": [{{"file": "tetra.obj", "transform": {{"translate": [0.5, 0, 4]}}}}]"#
             ),
-            (r#"{"point": [0, 0, 100], "normal": [0, 0, -1]}"#, &all),
-        ];
-        for (plane, expected) in cases {
-            let (manifest, scene) = scene_of(
-                &dir,
-                &format!(
-                    r#"{{"image": {{"width": {width}, "height": {height}}},
-                        "integrator": {{"type": "{integrator}"}},
-                        "spheres": [{{"center": [0, 0, 5], "radius": 0.5}}],
-                        "planes": [{plane}]}}"#
-                ),
+            &|traced| traced > 0 && traced * 4 < pixels,
+        ),
+        // The rays of the upper half leave a floor below behind, and but for the tiles
+        // round the sphere are not traced.
+        (
+            format!(r#"{sphere}, "planes": [{{"point": [0, -100, 0], "normal": [0, 1, 0]}}]"#),
+            &|traced| traced * 2 > pixels && traced * 8 < 7 * pixels,
+        ),
+        // Every ray meets a wall ahead.
+        (
+            format!(r#"{sphere}, "planes": [{{"point": [0, 0, 100], "normal": [0, 0, -1]}}]"#),
+            &|traced| traced == pixels,
+        ),
+    ];
+    for integrator in ["hit", "depth", "normal"] {
+        for (objects, expected) in &cases {
+            let json = format!(
+                r#"{{"image": {{"width": {width}, "height": {height}}},
+                    "integrator": {{"type": "{integrator}"}}, {objects}}}"#
             );
-            let bounded = Counting::new(&scene, true);
-            let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
-            let everything = Counting::new(&scene, false);
-            let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
-            assert_eq!(
-                image.to_bytes(),
-                reference.to_bytes(),
-                "{integrator} {plane}"
-            );
-            let traced = bounded.rays();
-            assert!(
-                expected(traced),
-                "{integrator} {plane}: {traced} of {pixels} rays"
-            );
+            let (traced, all) = rays_traced_with_and_without_extent(&dir, &json);
+            assert_eq!(all, pixels, "{json}");
+            assert!(expected(traced), "{traced} of {pixels} rays: {json}");
         }
     }
 }
@@ -280,16 +265,7 @@ fn untraced_tiles_give_the_bytes_traced_ones_give() {
             integrators[case % 3],
             samplers[case / 6 % 3],
         );
-        let (manifest, scene) = scene_of(&dir, &json);
-        let bounded = Counting::new(&scene, true);
-        let image = raybatch::render::render(&bounded, &manifest, &|_| {}).unwrap();
-        let everything = Counting::new(&scene, false);
-        let reference = raybatch::render::render(&everything, &manifest, &|_| {}).unwrap();
-        assert!(
-            image.to_bytes() == reference.to_bytes(),
-            "case {case}: {json}"
-        );
-        let (traced, all) = (bounded.rays(), everything.rays());
+        let (traced, all) = rays_traced_with_and_without_extent(&dir, &json);
         mixed += usize::from(traced > 0 && traced < all);
     }
     assert!(
