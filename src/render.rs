@@ -373,8 +373,9 @@ pub fn render_with<T: Tracer, I: Integrator>(
             let n = tile.pixels(&mut pixels);
             // Where every ray of the tile passes outside everything it could hit, each
             // takes the integrator's value for a miss, untraced.
-            let missed = misses.filter(|(_, extent)| view.tile_misses(&tile, band.y0, extent));
-            let missed = missed.map(|(value, _)| value);
+            let missed = misses
+                .filter(|(_, extent)| view.tile_misses(&tile, band.y0, extent))
+                .map(|(value, _)| value);
             if spp == 1 {
                 match missed {
                     Some(value) => values[..n].fill(value),
