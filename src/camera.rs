@@ -80,28 +80,53 @@ fn unit(v: DVec3) -> DVec3 {
 /// steeply away from it, [`ScreenRegion::misses_plane`] asks the rays to start and go.
 pub const MISS_MARGIN: f64 = 1e-4;
 
-/// The pinhole rays through a rectangle of the screen ([`Camera::region`]), for showing
-/// that none of them can hit something. Each lies in the cone from the origin spanned by
-/// the four corners' directions `u · right + v · up + forward` (a direction is affine in
-/// `u` and `v`), so inside each half-space bounded by the plane through two neighbouring
-/// corners that holds the other two, and in front of the origin along the corners' sum.
+/// The rays through a rectangle of the screen ([`Camera::region`]), for showing that none
+/// of them can hit something.
+///
+/// Without a lens each ray starts at the origin and lies in the cone spanned by the four
+/// corners' directions `u · right + v · up + forward` (a direction is affine in `u` and
+/// `v`): inside each half-space bounded by the plane through two neighbouring corners
+/// that holds the other two, and in front of the origin along the corners' sum.
+///
+/// Through a lens each ray starts at a point `l` of the lens and passes through the
+/// point `q` of the focus plane that the pinhole ray of its screen point meets; the
+/// lens disk lies in the square of its four corners, and the focus points of the
+/// rectangle in the quadrilateral of its corners' focus points. The rays' points
+/// `l + t (q − l)`, `t ≥ 0`, make an hourglass of two convex parts: from the lens to
+/// the focus plane (`t ≤ 1`), the hull of the eight corners; beyond it, `q + s (q − l)`
+/// for `s ≥ 0`. Something is missed when a plane separates it from each part.
 #[derive(Debug, Clone, Copy)]
 pub struct ScreenRegion {
     origin: DVec3,
+    shape: RegionShape,
+}
+
+#[derive(Debug, Clone, Copy)]
+enum RegionShape {
     /// The corners' directions, in order round the rectangle.
-    corners: [DVec3; 4],
+    Pinhole { corners: [DVec3; 4] },
+    /// Relative to the camera's origin, in order round each: the lens square's corners and
+    /// the rectangle's corners' focus points; the unit view direction, and the least
+    /// progress along it of any `q − l` (positive).
+    Lens {
+        lens: [DVec3; 4],
+        focus: [DVec3; 4],
+        axis: DVec3,
+        rise: f64,
+    },
 }
 
 impl ScreenRegion {
     /// Whether every ray of the region passes outside the box from `min` to `max` grown
-    /// by [`MISS_MARGIN`]: the box lies wholly outside one of the cone's half-spaces.
-    /// `true` for an empty box (`min > max` on an axis); `false` where it cannot be shown.
+    /// by [`MISS_MARGIN`]: the box lies wholly outside one of the cone's half-spaces, or
+    /// through a lens, a plane separates it from each part of the hourglass. `true` for
+    /// an empty box (`min > max` on an axis); `false` where it cannot be shown.
+    #[inline]
     pub fn misses_box(&self, [min, max]: [DVec3; 2]) -> bool {
         if (0..3).any(|axis| min[axis] > max[axis]) {
             return true;
         }
-        let corners = &self.corners;
-        let scale = (self.origin.abs().max_element())
+        let scale = (self.origin.abs().max_element() + self.lens_reach())
             .max(min.abs().max_element())
             .max(max.abs().max_element());
         let grow = DVec3::splat(MISS_MARGIN * scale);
@@ -112,47 +137,171 @@ impl ScreenRegion {
         if !(centre.is_finite() && half.is_finite()) {
             return false;
         }
-        // Whether the box's farthest reach along `normal` stays on its negative side.
-        let beyond = |normal: DVec3| normal.dot(centre) + normal.abs().dot(half) < 0.0;
-        // Behind the origin: the corners' sum points into the cone when every corner is
-        // on its positive side.
-        let axis = corners.iter().sum::<DVec3>();
-        if corners.iter().all(|c| c.dot(axis) > 0.0) && beyond(axis) {
-            return true;
+        match &self.shape {
+            RegionShape::Pinhole { corners } => cone_misses_box(corners, centre, half),
+            RegionShape::Lens {
+                lens,
+                focus,
+                axis,
+                rise,
+            } => hourglass_misses_box(lens, focus, *axis, *rise, centre, half),
         }
-        (0..4).any(|i| {
-            let mut normal = corners[i].cross(corners[(i + 1) % 4]);
-            // Turned into the cone: the other two corners on its positive side (the
-            // corners go round one way or the other as the frame is left- or
-            // right-handed).
-            let [a, b] = [2, 3].map(|k| normal.dot(corners[(i + k) % 4]));
-            if a < 0.0 && b < 0.0 {
-                normal = -normal;
-            }
-            let inward = (a > 0.0 && b > 0.0) || (a < 0.0 && b < 0.0);
-            inward && beyond(normal)
-        })
     }
 
-    /// Whether every ray of the region leaves the plane behind: the origin lies off the
-    /// plane, and every corner's direction points away from it, by [`MISS_MARGIN`] of the
-    /// coordinates and of the direction's length. Such a ray meets the plane only at a
-    /// negative `t`, never with `0 ≤ tmin < t`.
+    /// Whether every ray of the region leaves the plane behind: every ray's start lies off
+    /// the plane, on one side, and every ray's direction points away from it, by
+    /// [`MISS_MARGIN`] of the coordinates and of the direction's length. Such a ray meets
+    /// the plane only at a negative `t`, never with `0 ≤ tmin < t`.
     pub fn misses_plane(&self, plane: &Plane) -> bool {
         let Plane { point, normal } = *plane;
-        let height = (point - self.origin).dot(normal);
-        let scale = self
-            .origin
-            .abs()
-            .max_element()
-            .max(point.abs().max_element());
-        if !(height.is_finite() && height.abs() > MISS_MARGIN * scale * normal.length()) {
-            return false;
+        let scale =
+            (self.origin.abs().max_element() + self.lens_reach()).max(point.abs().max_element());
+        let margin = MISS_MARGIN * normal.length();
+        let to_plane = point - self.origin;
+        // The plane's normal turned toward the plane, seen from the origin.
+        let side = to_plane.dot(normal).signum() * normal;
+        let off = |start: &DVec3| {
+            let height = (to_plane - *start).dot(side);
+            height.is_finite() && height > margin * scale
+        };
+        let away = |direction: DVec3| direction.dot(side) < -margin * direction.length();
+        match &self.shape {
+            RegionShape::Pinhole { corners } => {
+                off(&DVec3::ZERO) && corners.iter().all(|&c| away(c))
+            }
+            // The disk lies between the lens's corners, and every direction `q − l` is a
+            // weighted sum of those from the lens's corners to the focus corners.
+            RegionShape::Lens { lens, focus, .. } => {
+                lens.iter().all(off) && focus.iter().all(|&q| lens.iter().all(|&l| away(q - l)))
+            }
         }
-        let side = height.signum() * normal;
-        let away = |c: &DVec3| c.dot(side) < -MISS_MARGIN * c.length() * normal.length();
-        self.corners.iter().all(away)
     }
+
+    /// How far the lens's corners lie from the origin along any axis (zero without one).
+    fn lens_reach(&self) -> f64 {
+        match &self.shape {
+            RegionShape::Pinhole { .. } => 0.0,
+            RegionShape::Lens { lens, .. } => lens
+                .iter()
+                .map(|l| l.abs().max_element())
+                .fold(0.0, f64::max),
+        }
+    }
+}
+
+/// Whether the box of `centre` (seen from the origin) and `half` extent lies wholly on
+/// the negative side of the plane through the origin with `normal`.
+#[inline(always)]
+fn beyond(normal: DVec3, centre: DVec3, half: DVec3) -> bool {
+    normal.dot(centre) + normal.abs().dot(half) < 0.0
+}
+
+/// [`ScreenRegion::misses_box`] for a pinhole's cone of `corners`.
+fn cone_misses_box(corners: &[DVec3; 4], centre: DVec3, half: DVec3) -> bool {
+    // Behind the origin: the corners' sum points into the cone when every corner is on
+    // its positive side.
+    let axis = corners.iter().sum::<DVec3>();
+    if corners.iter().all(|c| c.dot(axis) > 0.0) && beyond(axis, centre, half) {
+        return true;
+    }
+    (0..4).any(|i| {
+        let mut normal = corners[i].cross(corners[(i + 1) % 4]);
+        // Turned into the cone: the other two corners on its positive side (the corners
+        // go round one way or the other as the frame is left- or right-handed).
+        let [a, b] = [2, 3].map(|k| normal.dot(corners[(i + k) % 4]));
+        if a < 0.0 && b < 0.0 {
+            normal = -normal;
+        }
+        let inward = (a > 0.0 && b > 0.0) || (a < 0.0 && b < 0.0);
+        inward && beyond(normal, centre, half)
+    })
+}
+
+/// Whether the ray from the origin along `direction` (`t ≥ 0`) meets the box of `centre`
+/// (seen from the origin) and `half` extent, in float64 slabs.
+fn ray_meets_box(direction: DVec3, centre: DVec3, half: DVec3) -> bool {
+    let (mut near, mut far) = (0.0f64, f64::INFINITY);
+    for axis in 0..3 {
+        let (d, low, high) = (
+            direction[axis],
+            centre[axis] - half[axis],
+            centre[axis] + half[axis],
+        );
+        if d == 0.0 {
+            if low > 0.0 || high < 0.0 {
+                return false;
+            }
+            continue;
+        }
+        let (a, b) = (low / d, high / d);
+        near = near.max(a.min(b));
+        far = far.min(a.max(b));
+    }
+    near <= far
+}
+
+/// [`ScreenRegion::misses_box`] through a lens (see [`ScreenRegion`]): whether some
+/// plane separates the box from the hull of the `lens` and `focus` corners, and some
+/// plane from the part beyond the focus plane. The planes tried are those through an edge
+/// of either quadrilateral and a corner of the other (the hourglass's sides), the plane
+/// of the focus points, and the box's faces.
+fn hourglass_misses_box(
+    lens: &[DVec3; 4],
+    focus: &[DVec3; 4],
+    axis: DVec3,
+    rise: f64,
+    centre: DVec3,
+    half: DVec3,
+) -> bool {
+    // The ray from the lens's centre through the focus points' centre is one of the
+    // region's: where it meets the box (the tiles in view), no plane is tried.
+    if ray_meets_box(focus.iter().sum::<DVec3>(), centre, half) {
+        return false;
+    }
+    // Beyond the focus plane a ray's point `q + s (q − l)` gains at least `rise` along the
+    // axis per unit of `s`, so only `s ≤ reach` can come as far along it as the box.
+    let nearest_focus = focus
+        .iter()
+        .map(|q| q.dot(axis))
+        .fold(f64::INFINITY, f64::min);
+    let reach = ((axis.dot(centre) + axis.abs().dot(half) - nearest_focus) / rise).max(0.0);
+    let (mut before, mut after) = (false, false);
+    let mut separates = |normal: DVec3| {
+        let (box_low, box_high) = {
+            let (c, r) = (normal.dot(centre), normal.abs().dot(half));
+            (c - r, c + r)
+        };
+        let extremes = |points: &[DVec3; 4]| {
+            let d = points.map(|p| normal.dot(p));
+            (
+                d.iter().copied().fold(f64::INFINITY, f64::min),
+                d.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            )
+        };
+        let ((l_low, l_high), (q_low, q_high)) = (extremes(lens), extremes(focus));
+        before |= box_high < l_low.min(q_low) || box_low > l_high.max(q_high);
+        // Along `normal`, `q + s (q − l)` reaches at most `q_high + s (q_high − l_low)`.
+        let top = q_high + reach * (q_high - l_low).max(0.0);
+        let bottom = q_low - reach * (l_high - q_low).max(0.0);
+        after |= box_high < bottom || box_low > top;
+        before && after
+    };
+    let focus_plane = (focus[2] - focus[0]).cross(focus[3] - focus[1]);
+    if [focus_plane, DVec3::X, DVec3::Y, DVec3::Z]
+        .into_iter()
+        .any(&mut separates)
+    {
+        return true;
+    }
+    for (points, others) in [(focus, lens), (lens, focus)] {
+        for i in 0..4 {
+            let (start, edge) = (points[i], points[(i + 1) % 4] - points[i]);
+            if others.iter().any(|&o| separates(edge.cross(o - start))) {
+                return true;
+            }
+        }
+    }
+    false
 }
 
 /// A camera bound to an image size.
@@ -328,14 +477,13 @@ impl Camera {
         }
     }
 
-    /// The pinhole rays through screen coordinates `u0 ≤ u ≤ u1`, `v0 ≤ v ≤ v1` (see
-    /// [`Camera::screen_u`]), whatever their offsets in their pixels: `None` for a camera
-    /// with a lens (its rays start at points of the lens) or coordinates that are not
-    /// finite.
+    /// The rays through screen coordinates `u0 ≤ u ≤ u1`, `v0 ≤ v ≤ v1` (see
+    /// [`Camera::screen_u`]), whatever their offsets in their pixels and, through a lens,
+    /// their points of the lens. `None` for coordinates that are not finite, and through a
+    /// lens for corners whose pinhole rays do not go ahead along the view direction, or
+    /// focus points not clear of the lens along it.
+    #[inline]
     pub fn region(&self, [u0, u1]: [f64; 2], [v0, v1]: [f64; 2]) -> Option<ScreenRegion> {
-        if self.lens.is_some() {
-            return None;
-        }
         let f = &self.frame;
         let corner = |u: f64, v: f64| u * f.right + v * f.up + f.forward;
         let corners = [
@@ -344,10 +492,40 @@ impl Camera {
             corner(u1, v1),
             corner(u0, v1),
         ];
-        let finite = f.origin.is_finite() && corners.iter().all(|c| c.is_finite());
-        finite.then_some(ScreenRegion {
+        let finite = |points: &[DVec3]| points.iter().all(|p| p.is_finite());
+        if !(f.origin.is_finite() && finite(&corners)) {
+            return None;
+        }
+        let shape = match &self.lens {
+            None => RegionShape::Pinhole { corners },
+            Some(l) => {
+                // A corner's focus point is where its pinhole ray meets the focus plane;
+                // with every corner ahead along the axis, so is every pixel's, and the
+                // rectangle's focus points fill the quadrilateral of the corners'.
+                if !corners.iter().all(|c| c.dot(l.axis) > 0.0) {
+                    return None;
+                }
+                let focus = corners.map(|c| c * (l.focus_distance / c.dot(l.axis)));
+                let lens = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+                    .map(|(x, y)| l.radius * (x * l.lens_x + y * l.lens_y));
+                let rise = (focus.iter())
+                    .flat_map(|q| lens.iter().map(move |l| *q - *l))
+                    .map(|d| d.dot(l.axis))
+                    .fold(f64::INFINITY, f64::min);
+                if !(finite(&focus) && finite(&lens) && rise > 0.0 && rise.is_finite()) {
+                    return None;
+                }
+                RegionShape::Lens {
+                    lens,
+                    focus,
+                    axis: l.axis,
+                    rise,
+                }
+            }
+        };
+        Some(ScreenRegion {
             origin: f.origin,
-            corners,
+            shape,
         })
     }
 
@@ -1082,13 +1260,15 @@ mod tests {
         near <= far
     }
 
-    /// Random cameras (look-at, and bases used as given: skewed, short, long), regions of
+    /// Random cameras (look-at, and bases used as given: skewed, short, long; half of
+    /// them through a lens up to twice the scale wide, focused near or far), regions of
     /// their screens (pixel rectangles, as the render loop asks), boxes and planes, at
     /// several scales and distances from the origin. A box around a point of one of the
-    /// region's rays (a corner's, an edge's or an inner one), or a plane through it, is
-    /// never said to be missed; of the boxes and planes put anywhere, none said to be
-    /// missed is met by any of the region's rays sampled along its edges and inside
-    /// (float64 slabs, [`Plane::intersect`]), and many are said to be missed.
+    /// region's rays (a corner's, an edge's or an inner one, from the lens's rim or
+    /// inside), or a plane through it, is never said to be missed; of the boxes and planes
+    /// put anywhere, none said to be missed is met by any of the region's rays sampled
+    /// along its edges and inside, from along the lens's rim and inside (float64 slabs,
+    /// [`Plane::intersect`]), and many are said to be missed, with a lens and without.
     #[test]
     fn a_region_misses_only_boxes_and_planes_that_none_of_its_rays_meets() {
         use crate::test_random::XorShift;
@@ -1099,7 +1279,10 @@ mod tests {
             DVec3::from_array([(); 3].map(|_| uniform(random, -1.0, 1.0))) * length
         }
         let random = &mut XorShift::new(0x5eed_b0c5);
-        let (mut anywhere, mut missed, mut planes_missed) = (0, 0, 0);
+        // Counts without a lens and with one.
+        let (mut anywhere, mut missed, mut planes_missed) = ([0; 2], [0; 2], [0; 2]);
+        let mut near_missed = [0; 2];
+        let mut no_region = 0;
         for case in 0..4000 {
             let scale = [1e-3, 1.0, 1e3][case % 3];
             let offset = DVec3::splat([0.0, 1e4][case / 3 % 2] * scale);
@@ -1120,7 +1303,12 @@ mod tests {
                 }
             };
             let (width, height) = (1 + case as u32 * 37 % 700, 1 + case as u32 * 53 % 500);
-            let camera = Camera::new(&pinhole(frame), width, height);
+            let with_lens = case / 8 % 2 == 1;
+            let lens = with_lens.then(|| ThinLens {
+                radius: uniform(random, 0.0, 2.0) * scale,
+                focus_distance: uniform(random, 0.05, 50.0) * scale,
+            });
+            let camera = Camera::new(&CameraDesc { frame, lens }, width, height);
             let x0 = (case as u32 * 7919) % width;
             let y0 = (case as u32 * 104_729) % height;
             let (w, h) = (
@@ -1142,16 +1330,28 @@ mod tests {
             for _ in 0..16 {
                 samples.push((uniform(random, 0.0, 1.0), uniform(random, 0.0, 1.0)));
             }
+            // Points of the lens: the rim of its square of samples is the disk's rim.
+            let mut lens_samples = vec![(0.5, 0.5)];
+            if with_lens {
+                for k in 0..8 {
+                    let a = f64::from(k) / 8.0;
+                    lens_samples.extend([(a, 0.0), (1.0 - a, 1.0), (0.0, 1.0 - a), (1.0, a)]);
+                }
+                lens_samples.push((uniform(random, 0.0, 1.0), uniform(random, 0.0, 1.0)));
+            }
+            let samples: Vec<_> = (samples.iter())
+                .flat_map(|&s| lens_samples.iter().map(move |&l| (s, l)))
+                .collect();
             let rays: Vec<Ray> = samples
                 .iter()
-                .map(|&(fx, fy)| {
+                .map(|&((fx, fy), lens)| {
                     let sx = f64::from(x0) + fx * f64::from(w);
                     let sy = f64::from(y0) + fy * f64::from(h);
                     let (px, py) = (
                         sx.floor().min(f64::from(x1 - 1)),
                         sy.floor().min(f64::from(y1 - 1)),
                     );
-                    camera.ray(px as u32, py as u32, sx - px, sy - py, (0.5, 0.5))
+                    camera.ray(px as u32, py as u32, sx - px, sy - py, lens)
                 })
                 .collect();
 
@@ -1163,7 +1363,11 @@ mod tests {
                 enters(ray.origin, ray.direction, point - half, point + half),
                 "case {case}: the reference"
             );
-            let region = camera.region(u, v).expect("a pinhole's region");
+            let Some(region) = camera.region(u, v) else {
+                assert!(with_lens, "case {case}: a pinhole's region");
+                no_region += 1;
+                continue;
+            };
             assert!(
                 !region.misses_box([point - half, point + half]),
                 "case {case}: a box on a ray of the region"
@@ -1184,7 +1388,7 @@ mod tests {
                 normal: vector(random, 1.0).normalize(),
             };
             if region.misses_plane(&plane) {
-                planes_missed += 1;
+                planes_missed[usize::from(with_lens)] += 1;
                 for (ray, sample) in rays.iter().zip(&samples) {
                     assert!(
                         plane.intersect(ray, f64::INFINITY).is_none(),
@@ -1193,13 +1397,29 @@ mod tests {
                 }
             }
 
+            // A small box near a point of one of the rays, often just outside them all.
+            let ray = rays[(case * 7 + 3) % rays.len()];
+            let distance = uniform(random, 0.0, 100.0) * scale;
+            let centre = ray.at(distance) + vector(random, 0.3 * distance);
+            let half = vector(random, 0.05 * distance).abs();
+            let (low, high) = (centre - half, centre + half);
+            if region.misses_box([low, high]) {
+                near_missed[usize::from(with_lens)] += 1;
+                for (ray, sample) in rays.iter().zip(&samples) {
+                    assert!(
+                        !enters(ray.origin, ray.direction, low, high),
+                        "case {case}: a ray at {sample:?} of the region enters a missed box near it"
+                    );
+                }
+            }
+
             // A box anywhere.
             let centre = offset + vector(random, 50.0 * scale);
             let half = vector(random, 5.0 * scale).abs();
             let (low, high) = (centre - half, centre + half);
-            anywhere += 1;
+            anywhere[usize::from(with_lens)] += 1;
             if region.misses_box([low, high]) {
-                missed += 1;
+                missed[usize::from(with_lens)] += 1;
                 for (ray, sample) in rays.iter().zip(&samples) {
                     assert!(
                         !enters(ray.origin, ray.direction, low, high),
@@ -1208,29 +1428,71 @@ mod tests {
                 }
             }
         }
-        assert!(missed * 4 > anywhere, "{missed} of {anywhere} boxes missed");
+        println!(
+            "{missed:?} of {anywhere:?} boxes, {near_missed:?} near, {planes_missed:?} planes missed; {no_region} lens regions none"
+        );
         assert!(
-            planes_missed * 8 > anywhere,
-            "{planes_missed} of {anywhere} planes missed"
+            missed[0] * 4 > anywhere[0],
+            "{missed:?} of {anywhere:?} boxes missed"
+        );
+        assert!(
+            missed[1] * 4 > anywhere[1],
+            "{missed:?} of {anywhere:?} boxes missed"
+        );
+        assert!(
+            planes_missed[0] * 8 > anywhere[0] && planes_missed[1] * 8 > anywhere[1],
+            "{planes_missed:?} of {anywhere:?} planes missed"
+        );
+        assert!(
+            no_region * 10 < anywhere[1],
+            "{no_region} lens regions none"
         );
     }
 
     #[test]
-    fn a_lens_has_no_region_and_every_ray_misses_an_empty_box() {
+    fn regions_miss_what_lies_behind_and_empty_boxes_and_say_nothing_of_the_unknown() {
         let frame = look_at_frame(DVec3::new(0.0, 0.0, 5.0), DVec3::ZERO, DVec3::Y, 40.0).unwrap();
         let behind = [DVec3::new(-1.0, -1.0, 9.0), DVec3::new(1.0, 1.0, 11.0)];
         let (u, v) = ([-0.1, 0.1], [-0.1, 0.1]);
         let region = Camera::new(&pinhole(frame), 64, 64).region(u, v).unwrap();
         assert!(region.misses_box(behind));
+        // Through a lens of radius 0.1: what lies behind is missed; a box a tenth ahead of
+        // the lens and 0.08 to the side, outside the pinhole's cone, is on rays from the
+        // lens's rim; a box beside the focus points is passed by, and one as far beyond
+        // them as they are from the lens, outside the pinhole's cone, is not.
         let lens = Some(ThinLens {
             radius: 0.1,
             focus_distance: 5.0,
         });
-        assert!(
-            Camera::new(&CameraDesc { frame, lens }, 64, 64)
-                .region(u, v)
-                .is_none()
+        let through_lens = Camera::new(&CameraDesc { frame, lens }, 64, 64)
+            .region(u, v)
+            .unwrap();
+        assert!(through_lens.misses_box(behind));
+        let before_lens = [DVec3::new(0.08, -0.01, 4.89), DVec3::new(0.09, 0.01, 4.91)];
+        assert!(region.misses_box(before_lens));
+        assert!(!through_lens.misses_box(before_lens));
+        let beside_focus = [DVec3::new(0.3, -0.05, -0.05), DVec3::new(0.4, 0.05, 0.05)];
+        assert!(through_lens.misses_box(beside_focus));
+        let beyond_focus = [DVec3::new(0.4, -0.05, -5.05), DVec3::new(0.45, 0.05, -4.95)];
+        assert!(region.misses_box(beyond_focus));
+        assert!(!through_lens.misses_box(beyond_focus));
+        // A screen corner whose pinhole ray points back from the lens's axis: no region.
+        let skewed = CameraFrame {
+            origin: DVec3::ZERO,
+            right: DVec3::new(1.0, 0.0, -1.0),
+            up: DVec3::Y,
+            forward: DVec3::Z,
+        };
+        let camera = Camera::new(
+            &CameraDesc {
+                frame: skewed,
+                lens,
+            },
+            64,
+            64,
         );
+        assert!(camera.region([0.5, 0.9], v).is_some());
+        assert!(camera.region([0.5, 1.1], v).is_none());
         let empty = [DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)];
         assert!(region.misses_box(empty));
         let not_finite = [DVec3::splat(f64::NAN), DVec3::splat(1.0)];

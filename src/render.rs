@@ -66,8 +66,8 @@ impl View {
 
     /// Whether every ray of `tile` (of the band starting at row `y0`), whatever its
     /// sample's offset in the pixel, provably hits nothing of `extent`: it passes outside
-    /// the box and leaves every plane behind ([`crate::camera::ScreenRegion`]). Never
-    /// through a lens.
+    /// the box and leaves every plane behind ([`crate::camera::ScreenRegion`]), from
+    /// whatever point of the lens.
     pub fn tile_misses(&self, tile: &Tile, y0: u32, extent: &Extent) -> bool {
         let camera = &self.camera;
         let (x, y) = (tile.x0, y0 + tile.dy0);

@@ -184,24 +184,30 @@ fn tiles_whose_rays_all_pass_outside_the_scene_are_not_traced() {
             &|traced| traced == pixels,
         ),
     ];
-    for integrator in ["hit", "depth", "normal"] {
-        for (objects, expected) in &cases {
-            let json = format!(
-                r#"{{"image": {{"width": {width}, "height": {height}}},
-                    "integrator": {{"type": "{integrator}"}}, {objects}}}"#
-            );
-            let (traced, all) = rays_traced_with_and_without_extent(&dir, &json);
-            assert_eq!(all, pixels, "{json}");
-            assert!(expected(traced), "{traced} of {pixels} rays: {json}");
+    // The same through a lens focused on the sphere, four samples a pixel: the tiles
+    // skipped are nearly the same.
+    let lens = r#""camera": {"aperture": 0.05, "focus_distance": 5},
+                  "sampler": {"type": "stratified", "spp": 4},"#;
+    for (camera, spp) in [("", 1), (lens, 4)] {
+        for integrator in ["hit", "depth", "normal"] {
+            for (objects, expected) in &cases {
+                let json = format!(
+                    r#"{{"image": {{"width": {width}, "height": {height}}}, {camera}
+                        "integrator": {{"type": "{integrator}"}}, {objects}}}"#
+                );
+                let (traced, all) = rays_traced_with_and_without_extent(&dir, &json);
+                assert_eq!(all, pixels * spp, "{json}");
+                assert!(expected(traced / spp), "{traced} of {all} rays: {json}");
+            }
         }
     }
 }
 
 /// Untraced tiles change no pixel: random views of a mesh and spheres, half of them over a
 /// floor, at scales from a thousandth to a thousand and ten thousand units from the
-/// origin, partly outside the image, through every integrator and sampler, render the
-/// same bytes whether or not the render loop is told what the scene holds. Most views
-/// have tiles of both kinds.
+/// origin, partly outside the image, through every integrator and sampler, with a lens
+/// and without, render the same bytes whether or not the render loop is told what the
+/// scene holds. Most views have tiles of both kinds (through a lens, over a third).
 #[test]
 fn untraced_tiles_give_the_bytes_traced_ones_give() {
     let dir = Dir::new();
@@ -222,9 +228,10 @@ fn untraced_tiles_give_the_bytes_traced_ones_give() {
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         low + (high - low) * ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
     };
-    let mut mixed = 0;
-    // Every scale, distance, sampler and integrator with every other.
-    let cases = 3 * 2 * 3 * 3;
+    // Views with tiles of both kinds, without a lens and with one.
+    let mut mixed = [0; 2];
+    // Every scale, distance, sampler, integrator and lens with every other.
+    let cases = 3 * 2 * 3 * 3 * 2;
     for case in 0..cases {
         let scale = [1e-3, 1.0, 1e3][case % 3];
         let offset = [0.0, 1e4][case / 3 % 2] * scale;
@@ -232,6 +239,19 @@ fn untraced_tiles_give_the_bytes_traced_ones_give() {
         let at = [0.0, 0.0, 0.0].map(|_| place(uniform(-1.5, 1.5)));
         let from = [0.0, 0.0, 0.0].map(|_| place(uniform(-6.0, 6.0)));
         let vfov = uniform(20.0, 100.0);
+        // Half the views through a lens, focused near the objects or away from them.
+        let with_lens = case / 54 % 2 == 1;
+        let lens = if with_lens {
+            let to = (0..3)
+                .map(|k| (at[k] - from[k]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let aperture = uniform(0.01, 0.3) * scale;
+            let focus = to * uniform(0.3, 2.0);
+            format!(r#", "aperture": {aperture}, "focus_distance": {focus}"#)
+        } else {
+            String::new()
+        };
         let spheres = (0..2)
             .map(|_| {
                 let c = [0.0, 0.0, 0.0].map(|_| place(uniform(-2.0, 2.0)));
@@ -252,7 +272,7 @@ fn untraced_tiles_give_the_bytes_traced_ones_give() {
         };
         let json = format!(
             r#"{{"image": {{"width": 45, "height": 31}},
-                "camera": {{"look_from": [{}, {}, {}], "look_at": [{}, {}, {}], "vfov": {vfov}}},
+                "camera": {{"look_from": [{}, {}, {}], "look_at": [{}, {}, {}], "vfov": {vfov}{lens}}},
                 "integrator": {{"type": "{}"}}, "sampler": {},
                 "spheres": [{spheres}], "planes": [{planes}],
                 "meshes": [{{"file": "ball.obj",
@@ -267,11 +287,12 @@ fn untraced_tiles_give_the_bytes_traced_ones_give() {
             samplers[case / 6 % 3],
         );
         let (traced, all) = rays_traced_with_and_without_extent(&dir, &json);
-        mixed += usize::from(traced > 0 && traced < all);
+        mixed[usize::from(with_lens)] += usize::from(traced > 0 && traced < all);
     }
+    let [pinhole, lens] = mixed;
     assert!(
-        mixed * 2 > cases,
-        "{mixed} of {cases} views with tiles of both kinds"
+        pinhole * 4 > cases && lens * 6 > cases,
+        "{mixed:?} of {cases} views with tiles of both kinds"
     );
 }
 
