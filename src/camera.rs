@@ -1397,48 +1397,42 @@ mod tests {
                 }
             }
 
+            // Whether the box is said to be missed; if so, no ray of the region enters it.
+            let missed_box = |[low, high]: [DVec3; 2], place: &str| {
+                let said = region.misses_box([low, high]);
+                if said {
+                    for (ray, sample) in rays.iter().zip(&samples) {
+                        assert!(
+                            !enters(ray.origin, ray.direction, low, high),
+                            "case {case}: a ray at {sample:?} of the region enters a missed box {place}"
+                        );
+                    }
+                }
+                said
+            };
+
             // A small box near a point of one of the rays, often just outside them all.
             let ray = rays[(case * 7 + 3) % rays.len()];
             let distance = uniform(random, 0.0, 100.0) * scale;
             let centre = ray.at(distance) + vector(random, 0.3 * distance);
             let half = vector(random, 0.05 * distance).abs();
-            let (low, high) = (centre - half, centre + half);
-            if region.misses_box([low, high]) {
-                near_missed[usize::from(with_lens)] += 1;
-                for (ray, sample) in rays.iter().zip(&samples) {
-                    assert!(
-                        !enters(ray.origin, ray.direction, low, high),
-                        "case {case}: a ray at {sample:?} of the region enters a missed box near it"
-                    );
-                }
-            }
+            let near = missed_box([centre - half, centre + half], "near the rays");
+            near_missed[usize::from(with_lens)] += usize::from(near);
 
             // A box anywhere.
             let centre = offset + vector(random, 50.0 * scale);
             let half = vector(random, 5.0 * scale).abs();
-            let (low, high) = (centre - half, centre + half);
             anywhere[usize::from(with_lens)] += 1;
-            if region.misses_box([low, high]) {
-                missed[usize::from(with_lens)] += 1;
-                for (ray, sample) in rays.iter().zip(&samples) {
-                    assert!(
-                        !enters(ray.origin, ray.direction, low, high),
-                        "case {case}: a ray at {sample:?} of the region enters a missed box"
-                    );
-                }
-            }
+            let far = missed_box([centre - half, centre + half], "anywhere");
+            missed[usize::from(with_lens)] += usize::from(far);
         }
-        println!(
-            "{missed:?} of {anywhere:?} boxes, {near_missed:?} near, {planes_missed:?} planes missed; {no_region} lens regions none"
-        );
-        assert!(
-            missed[0] * 4 > anywhere[0],
-            "{missed:?} of {anywhere:?} boxes missed"
-        );
-        assert!(
-            missed[1] * 4 > anywhere[1],
-            "{missed:?} of {anywhere:?} boxes missed"
-        );
+        // Of the boxes just beside the rays too, most are missed: the tests are tight.
+        for k in 0..2 {
+            assert!(
+                missed[k] * 4 > anywhere[k] && near_missed[k] * 2 > anywhere[k],
+                "{missed:?} and {near_missed:?} near the rays of {anywhere:?} boxes missed"
+            );
+        }
         assert!(
             planes_missed[0] * 8 > anywhere[0] && planes_missed[1] * 8 > anywhere[1],
             "{planes_missed:?} of {anywhere:?} planes missed"
