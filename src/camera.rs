@@ -1414,8 +1414,10 @@ mod tests {
             // A small box near a point of one of the rays, often just outside them all.
             let ray = rays[(case * 7 + 3) % rays.len()];
             let distance = uniform(random, 0.0, 100.0) * scale;
-            let centre = ray.at(distance) + vector(random, 0.3 * distance);
-            let half = vector(random, 0.05 * distance).abs();
+            // Off by a thousandth of the distance to a third of it.
+            let off = distance * 10f64.powf(uniform(random, -3.0, -0.5));
+            let centre = ray.at(distance) + vector(random, off);
+            let half = vector(random, off / 4.0).abs();
             let near = missed_box([centre - half, centre + half], "near the rays");
             near_missed[usize::from(with_lens)] += usize::from(near);
 
@@ -1426,10 +1428,11 @@ mod tests {
             let far = missed_box([centre - half, centre + half], "anywhere");
             missed[usize::from(with_lens)] += usize::from(far);
         }
-        // Of the boxes just beside the rays too, most are missed: the tests are tight.
+        // Of the boxes just beside the rays, over a fifth are missed: the tests are tight
+        // (through a lens, without the planes through the sides, a ninth).
         for k in 0..2 {
             assert!(
-                missed[k] * 4 > anywhere[k] && near_missed[k] * 2 > anywhere[k],
+                missed[k] * 4 > anywhere[k] && near_missed[k] * 5 > anywhere[k],
                 "{missed:?} and {near_missed:?} near the rays of {anywhere:?} boxes missed"
             );
         }
