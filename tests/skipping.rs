@@ -184,8 +184,8 @@ fn tiles_whose_rays_all_pass_outside_the_scene_are_not_traced() {
             &|traced| traced == pixels,
         ),
     ];
-    // The same through a lens focused on the sphere, four samples a pixel: the tiles
-    // skipped are nearly the same.
+    // The same through a lens focused on the sphere, four samples a pixel: the same
+    // bounds hold on the pixels traced.
     let lens = r#""camera": {"aperture": 0.05, "focus_distance": 5},
                   "sampler": {"type": "stratified", "spp": 4},"#;
     for (camera, spp) in [("", 1), (lens, 4)] {
