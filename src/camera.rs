@@ -73,11 +73,12 @@ fn unit(v: DVec3) -> DVec3 {
 }
 
 /// How far outside a box [`ScreenRegion::misses_box`] must see the rays pass, relative to
-/// the largest coordinate of the camera's origin and of the box's corners. The rays the
-/// triangles meet are rounded to float32 (about 1e-7 of those coordinates, and the
-/// watertight test's own rounding about as much); the margin covers that a thousand
-/// times over and grows the box by a ten-thousandth. Also how far from a plane, and how
-/// steeply away from it, [`ScreenRegion::misses_plane`] asks the rays to start and go.
+/// the largest coordinate of the box's corners and of the camera's origin (plus, through
+/// a lens, how far the lens reaches from it along an axis). The rays the triangles meet
+/// are rounded to float32 (about 1e-7 of those coordinates, and the watertight test's own
+/// rounding about as much); the margin covers that a thousand times over and grows the
+/// box by a ten-thousandth. Also how far from a plane, and how steeply away from it,
+/// [`ScreenRegion::misses_plane`] asks the rays to start and go.
 pub const MISS_MARGIN: f64 = 1e-4;
 
 /// The rays through a rectangle of the screen ([`Camera::region`]), for showing that none
