@@ -6,7 +6,8 @@
 //! spheres also run through the Embree backend, in turns with ours.
 //!
 //! Our triangle tree is built as a job tracing as many rays would build it
-//! ([`Scene::build_for_rays`]). Every figure is the median of several runs. Trace passes
+//! ([`Scene::build_for_rays`]); where that is not the default preset, the default's build
+//! (what a job of fewer rays per triangle builds) is timed too. Every figure is the median of several runs. Trace passes
 //! run in rounds, every query of both tracers once per round, so that a slow spell of the
 //! machine lands on all columns alike instead of on one. Timing is never asserted in
 //! tests; the figures go to BENCHMARKS.md with the command that produced them.
@@ -18,6 +19,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use serde_json::json;
 
+use crate::bvh::BuildPreset;
 use crate::camera::{Camera, ThinLens, look_at_frame};
 use crate::hint::AnyHitHint;
 use crate::job::{Backend, Batch, JobOptions};
@@ -103,6 +105,10 @@ pub struct SceneFigures {
     /// chosen as a job tracing as many rays would choose it
     /// ([`crate::bvh::BuildPreset::for_triangles`]); `None` without triangles.
     pub triangle_tree_preset: Option<&'static str>,
+    /// Our build with the default preset ([`crate::bvh::BuildPreset::Fastest`], what a job
+    /// tracing fewer rays per triangle builds) where the traced tree's preset is another:
+    /// seconds, the median as for [`TracerFigures::build_s`]. `None` otherwise.
+    pub default_build_s: Option<f64>,
     /// Reading the mesh file, when there is one: seconds and MB/s.
     pub load: Option<(f64, f64)>,
     /// Peak resident memory added by loading and building, per triangle (Linux only): the
@@ -456,6 +462,7 @@ fn trace_scene(
         return Err("this build has no Embree backend (build with --features embree)".to_string());
     }
     let compute_loop_scaling;
+    let mut default_build_s = None;
     let (raybatch, embree) = {
         #[cfg(feature = "embree")]
         let mut reference = None;
@@ -468,6 +475,17 @@ fn trace_scene(
             let built = build();
             build_times[0].push(start.elapsed().as_secs_f64());
             drop(built);
+        }
+        let default = BuildPreset::default();
+        if triangle_tree_preset.is_some_and(|preset| preset != default.name()) {
+            let mut times = Vec::new();
+            while !builds_enough(&times) {
+                let start = Instant::now();
+                let built = Scene::build_with(&scene.geometry, default);
+                times.push(start.elapsed().as_secs_f64());
+                drop(built);
+            }
+            default_build_s = Some(median_of(times));
         }
         #[cfg(feature = "embree")]
         if options.embree {
@@ -525,6 +543,7 @@ fn trace_scene(
         rays: rays.len(),
         hits,
         triangle_tree_preset,
+        default_build_s,
         load: scene.load,
         peak_bytes_per_triangle,
         scene_bytes_per_primitive,
@@ -1023,6 +1042,7 @@ impl BenchReport {
                 "name": s.name, "triangles": s.triangles, "spheres": s.spheres, "rays": s.rays,
                 "hits": s.hits,
                 "triangle_tree_preset": s.triangle_tree_preset,
+                "default_build_s": s.default_build_s,
                 "load_s": s.load.map(|l| l.0), "load_mb_per_s": s.load.map(|l| l.1),
                 "peak_bytes_per_triangle": s.peak_bytes_per_triangle,
                 "scene_bytes_per_primitive": s.scene_bytes_per_primitive,
@@ -1109,24 +1129,33 @@ impl BenchReport {
         let _ = writeln!(out);
         let _ = writeln!(
             out,
-            "| scene | triangle tree preset | build s | Embree build s | build / Embree | load s | load MB/s | scene bytes/primitive | peak RSS growth bytes/triangle |"
+            "| scene | triangle tree preset | build s | Embree build s | build / Embree | `{default}` build s | `{default}` / Embree | load s | load MB/s | scene bytes/primitive | peak RSS growth bytes/triangle |",
+            default = BuildPreset::default().name()
         );
-        let _ = writeln!(out, "|---|---|---:|---:|---:|---:|---:|---:|---:|");
+        let _ = writeln!(
+            out,
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        );
         for s in &self.scenes {
+            let over_embree = |build_s: f64| {
+                s.embree
+                    .as_ref()
+                    .map_or("-".to_string(), |e| format!("{:.2}x", build_s / e.build_s))
+            };
             let _ = writeln!(
                 out,
                 // Build seconds to a tenth of a millisecond: the sphere field's take one or two.
-                "| {} | {} | {:.4} | {} | {} | {} | {} | {:.0} | {} |",
+                "| {} | {} | {:.4} | {} | {} | {} | {} | {} | {} | {:.0} | {} |",
                 s.name,
                 s.triangle_tree_preset.unwrap_or("-"),
                 s.raybatch.build_s,
                 s.embree
                     .as_ref()
                     .map_or("-".to_string(), |e| format!("{:.4}", e.build_s)),
-                s.embree.as_ref().map_or("-".to_string(), |e| format!(
-                    "{:.2}x",
-                    s.raybatch.build_s / e.build_s
-                )),
+                over_embree(s.raybatch.build_s),
+                s.default_build_s
+                    .map_or("-".to_string(), |b| format!("{b:.4}")),
+                s.default_build_s.map_or("-".to_string(), over_embree),
                 s.load.map_or("-".to_string(), |l| format!("{:.3}", l.0)),
                 s.load.map_or("-".to_string(), |l| format!("{:.0}", l.1)),
                 s.scene_bytes_per_primitive,
@@ -1219,6 +1248,12 @@ mod tests {
             assert_eq!(
                 figures.triangle_tree_preset,
                 Some(preset),
+                "{rings}x{sides}"
+            );
+            // The default preset's build is timed too where the traced tree is another.
+            assert_eq!(
+                figures.default_build_s.is_some(),
+                preset != "fastest",
                 "{rings}x{sides}"
             );
         }
