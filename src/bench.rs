@@ -7,10 +7,11 @@
 //!
 //! Our triangle tree is built as a job tracing as many rays would build it
 //! ([`Scene::build_for_rays`]); where that is not the default preset, the default's build
-//! (what a job of fewer rays per triangle builds) is timed too. Every figure is the median of several runs. Trace passes
-//! run in rounds, every query of both tracers once per round, so that a slow spell of the
-//! machine lands on all columns alike instead of on one. Timing is never asserted in
-//! tests; the figures go to BENCHMARKS.md with the command that produced them.
+//! (what a job of fewer rays per triangle builds) is timed too. Every figure is the median
+//! of several runs. Trace passes run in rounds, every query of both tracers once per
+//! round, so that a slow spell of the machine lands on all columns alike instead of on
+//! one. Timing is never asserted in tests; the figures go to BENCHMARKS.md with the
+//! command that produced them.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -437,7 +438,7 @@ fn trace_scene(
     let start = Instant::now();
     let first = build();
     let first_build = start.elapsed().as_secs_f64();
-    let triangle_tree_preset = (triangles > 0).then(|| first.triangle_tree().preset().name());
+    let traced_preset = (triangles > 0).then(|| first.triangle_tree().preset());
     let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
     });
@@ -477,7 +478,7 @@ fn trace_scene(
             drop(built);
         }
         let default = BuildPreset::default();
-        if triangle_tree_preset.is_some_and(|preset| preset != default.name()) {
+        if traced_preset.is_some_and(|preset| preset != default) {
             let mut times = Vec::new();
             while !builds_enough(&times) {
                 let start = Instant::now();
@@ -542,7 +543,7 @@ fn trace_scene(
         spheres,
         rays: rays.len(),
         hits,
-        triangle_tree_preset,
+        triangle_tree_preset: traced_preset.map(BuildPreset::name),
         default_build_s,
         load: scene.load,
         peak_bytes_per_triangle,
