@@ -127,7 +127,8 @@ impl ScreenRegion {
         if (0..3).any(|axis| min[axis] > max[axis]) {
             return true;
         }
-        let scale = (self.origin.abs().max_element() + self.lens_reach())
+        let scale = self
+            .start_reach()
             .max(min.abs().max_element())
             .max(max.abs().max_element());
         let grow = DVec3::splat(MISS_MARGIN * scale);
@@ -155,8 +156,7 @@ impl ScreenRegion {
     /// the plane only at a negative `t`, never with `0 ≤ tmin < t`.
     pub fn misses_plane(&self, plane: &Plane) -> bool {
         let Plane { point, normal } = *plane;
-        let scale =
-            (self.origin.abs().max_element() + self.lens_reach()).max(point.abs().max_element());
+        let scale = self.start_reach().max(point.abs().max_element());
         let margin = MISS_MARGIN * normal.length();
         let to_plane = point - self.origin;
         // The plane's normal turned toward the plane, seen from the origin.
@@ -178,15 +178,17 @@ impl ScreenRegion {
         }
     }
 
-    /// How far the lens's corners lie from the origin along any axis (zero without one).
-    fn lens_reach(&self) -> f64 {
-        match &self.shape {
+    /// The largest coordinate a ray's start can have: the origin's, plus through a lens
+    /// how far its corners lie from the origin along any axis.
+    fn start_reach(&self) -> f64 {
+        let lens = match &self.shape {
             RegionShape::Pinhole { .. } => 0.0,
             RegionShape::Lens { lens, .. } => lens
                 .iter()
                 .map(|l| l.abs().max_element())
                 .fold(0.0, f64::max),
-        }
+        };
+        self.origin.abs().max_element() + lens
     }
 }
 
