@@ -773,6 +773,7 @@ pub fn binary_tree(
     // sizes and fills its work arrays, one thread at a time; first touching a page costs
     // the kernel more than writing it, so the pages are touched here in parallel instead
     // (with obvhs' own starting values: zeros). A million triangles touch about 112 MB.
+    // Our radius-1 passes make the nodes themselves, once the leaves are sorted.
     let zeros = |len: usize| -> Vec<Bvh2Node> {
         (0..len)
             .into_par_iter()
@@ -781,16 +782,23 @@ pub fn binary_tree(
             .collect()
     };
     let mut bvh2 = Bvh2::zeroed(0);
-    bvh2.nodes = zeros((2 * count).saturating_sub(1));
     bvh2.primitive_indices = (0..count as u32)
         .into_par_iter()
         .with_min_len(PARALLEL_LEAVES)
         .collect();
-    let leaves: Vec<Bvh2Node> = (0..count)
-        .into_par_iter()
-        .with_min_len(PARALLEL_LEAVES)
-        .map(|i| Bvh2Node::new(box_of(i), 1, i as u32))
-        .collect();
+    // Room for the whole tree: our radius-1 passes make the leaves' array the tree's.
+    let minimum = matches!(params.ploc_search_distance, PlocSearchDistance::Minimum);
+    let mut leaves = Vec::with_capacity(if minimum {
+        (2 * count).saturating_sub(1)
+    } else {
+        count
+    });
+    leaves.par_extend(
+        (0..count)
+            .into_par_iter()
+            .with_min_len(PARALLEL_LEAVES)
+            .map(|i| Bvh2Node::new(box_of(i), 1, i as u32)),
+    );
     // The union of the leaves' boxes, as obvhs takes it (exact: only minima and maxima).
     let total = (leaves.par_iter().with_min_len(PARALLEL_LEAVES))
         .fold(Aabb::empty, |mut total, leaf| {
@@ -803,6 +811,7 @@ pub fn binary_tree(
         crate::ploc::build(&mut bvh2, leaves, total);
         return bvh2;
     }
+    bvh2.nodes = zeros((2 * count).saturating_sub(1));
     let mut builder = PlocBuilder::new();
     builder.current_nodes = leaves;
     builder.next_nodes = zeros(count);

@@ -18,6 +18,8 @@
 //! The order is [`crate::morton`]'s: obvhs' Morton codes, with leaves of equal codes in
 //! their own order, where obvhs' unstable sort may take them in another.
 
+use std::ops::Range;
+
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::node::Bvh2Node;
 use obvhs::bvh2::{Bvh2, DEFAULT_MAX_STACK_DEPTH};
@@ -34,98 +36,169 @@ use rayon::prelude::*;
 pub const LONG_RUN: usize = 48;
 
 /// Elements one parallel task takes at least. A pass's choices are made, and its nodes
-/// merged, in parallel from two such pieces on ([`pass`]).
+/// merged, in parallel from two such pieces on ([`plan`]).
 const PARALLEL_MIN: usize = 1 << 14;
 
 /// The binary tree over `leaves` (at least one; leaf `i` holds primitive `i`, as
 /// [`Bvh2Node::new`]`(box, 1, i)`) whose union box is `total`, written into `bvh2`,
-/// whose `nodes` must hold `2 · leaves.len() − 1` nodes (their values are overwritten)
-/// and whose `primitive_indices` must be `0..leaves.len()`. The root is node 0 and
-/// children come after their parents. Returns the number of passes made.
+/// whose `primitive_indices` must be `0..leaves.len()`. The root is node 0 and children
+/// come after their parents. Returns the number of passes made.
+///
+/// The leaves' array becomes the tree's `2 · leaves.len() − 1` nodes (give it room for
+/// them: with less, the tree takes a new array), once the leaves are sorted into an
+/// array of their own. The passes then take turns between that array and the tree's
+/// nodes not yet written: a pass writes its pairs from the end of those down and the
+/// next pass's nodes from their start up, where they fit, since the nodes not yet
+/// written always number one fewer than twice the nodes left. No array of leaves is
+/// kept beside the tree and the sorted ones (DEVELOPERS.md, "The build holds as little
+/// as it can at once").
 pub fn build(bvh2: &mut Bvh2, leaves: Vec<Bvh2Node>, total: Aabb) -> usize {
     let count = leaves.len();
-    debug_assert!(count > 0 && bvh2.nodes.len() == 2 * count - 1);
-    // The leaves' own array takes each pass's output from the first pass on.
-    let (mut current, mut next) = (crate::morton::sorted_leaves(&leaves, total), leaves);
+    debug_assert!(count > 0);
+    let mut sorted = crate::morton::sorted_leaves(&leaves, total);
+    // First touching a page costs the kernel more than writing it: the nodes are written
+    // (with zeros) in parallel.
+    let mut nodes = leaves;
+    nodes.clear();
+    nodes.par_extend(
+        (0..2 * count - 1)
+            .into_par_iter()
+            .with_min_len(PARALLEL_MIN)
+            .map(|_| Bvh2Node::default()),
+    );
+    bvh2.nodes = nodes;
     let mut choices = vec![0i8; count];
     // Pairs are written from the end of the nodes down, the root last to node 0.
     let mut free = bvh2.nodes.len();
     let mut passes = 0;
     let mut live = count;
+    // Whether this pass's nodes are the first `live` of the tree's (else of `sorted`).
+    let mut in_tree = false;
     while live > 1 {
-        let nodes = &current[..live];
+        let nodes: &[Bvh2Node] = if in_tree {
+            &bvh2.nodes[..live]
+        } else {
+            &sorted[..live]
+        };
         choose(nodes, &mut choices[..live]);
-        (free, live) = pass(
-            nodes,
-            &choices[..live],
-            &mut bvh2.nodes[..free],
-            &mut next,
-            PARALLEL_MIN,
-        );
-        std::mem::swap(&mut current, &mut next);
+        let plan = plan(&choices[..live], PARALLEL_MIN);
+        let merges: usize = plan.iter().map(|(_, output)| output.merges).sum();
+        // The pairs (`free = 2 · live − 1` down) reach into the nodes this pass reads,
+        // the tree's first `live`, only when every node pairs up: these are then read
+        // from `sorted`, and the next pass's nodes go into the tree, as on the other turn.
+        if in_tree && 2 * merges > free - live {
+            sorted[..live].copy_from_slice(&bvh2.nodes[..live]);
+            in_tree = false;
+        }
+        let kept = if in_tree {
+            let (nodes, tree) = bvh2.nodes[..free].split_at_mut(live);
+            let out = Out {
+                tree,
+                start: live,
+                next: Next::Apart(&mut sorted),
+            };
+            walk(nodes, &choices[..live], &plan, out)
+        } else {
+            let out = Out {
+                tree: &mut bvh2.nodes[..free],
+                start: 0,
+                next: Next::BelowPairs,
+            };
+            walk(&sorted[..live], &choices[..live], &plan, out)
+        };
+        free -= 2 * merges;
+        live = kept;
+        in_tree = !in_tree;
         passes += 1;
     }
     debug_assert_eq!(free, 1);
-    bvh2.nodes[0] = current[0];
+    if !in_tree {
+        bvh2.nodes[0] = sorted[0];
+    }
     bvh2.max_depth = DEFAULT_MAX_STACK_DEPTH.max(passes + 1);
     bvh2.children_are_ordered_after_parents = true;
     passes
 }
 
-/// One pass over `nodes` with their `choices`: merged pairs go into the end of `tree`,
-/// from its last node down, and the nodes for the next pass (new parents and carried
-/// nodes, in order) into `next`. Returns the number of `tree`'s nodes still unwritten and
-/// the number written to `next`.
+/// How a pass over `choices` is walked: ranges of the nodes, each with what its walk
+/// writes, in order.
 ///
-/// From two pieces of at least `piece` nodes on, the pieces are walked in parallel. Each
-/// piece but the first starts where a mutual pair does: a pair is the same whatever the
-/// walk's start (its right node chose left, so it cannot start another pair), and every
-/// run of unmerged nodes then lies in one piece. Counted first, each piece knows where its
-/// output goes, so the tree and the next pass's nodes are those of one walk, node for node.
-fn pass(
-    nodes: &[Bvh2Node],
-    choices: &[i8],
-    tree: &mut [Bvh2Node],
-    next: &mut [Bvh2Node],
-    piece: usize,
-) -> (usize, usize) {
-    if nodes.len() < 2 * piece {
-        let mut out = Pass::new(tree, 0, next);
-        out.walk(nodes, choices);
-        return (out.free, out.kept);
+/// From two pieces of at least `piece` nodes on, there are several, walked in parallel.
+/// Each piece but the first starts where a mutual pair does: a pair is the same whatever
+/// the walk's start (its right node chose left, so it cannot start another pair), and
+/// every run of unmerged nodes then lies in one piece. Counted first, each piece knows
+/// where its output goes, so the tree and the next pass's nodes are those of one walk,
+/// node for node.
+fn plan(choices: &[i8], piece: usize) -> Vec<(Range<usize>, Output)> {
+    if choices.len() < 2 * piece {
+        return vec![(0..choices.len(), Output::of(choices))];
     }
     // A piece starts at the first pair from each multiple of `piece` on; where the next
     // `piece` nodes hold none, the piece before runs on.
-    let starts: Vec<usize> = (0..nodes.len())
+    let starts: Vec<usize> = (0..choices.len())
         .step_by(piece)
         .filter_map(|from| {
-            let to = (from + piece).min(nodes.len() - 1);
+            let to = (from + piece).min(choices.len() - 1);
             (from..to).find(|&i| from == 0 || pair_at(choices, i))
         })
         .collect();
-    let ends = starts.iter().skip(1).copied().chain([nodes.len()]);
-    let ranges: Vec<(usize, usize)> = starts.iter().copied().zip(ends).collect();
-    let pieces: Vec<(usize, usize, Output)> = (ranges.into_par_iter())
-        .map(|(start, end)| (start, end, Output::of(&choices[start..end])))
-        .collect();
-    // Each piece's share of `tree` (downwards) and of `next` (upwards), in order.
-    let (mut tree_left, mut next_left) = (tree, next);
-    let mut work = Vec::with_capacity(pieces.len());
-    let mut kept = 0;
-    for &(start, end, output) in &pieces {
-        let below = tree_left.len() - 2 * output.merges;
-        let (lower, mine) = std::mem::take(&mut tree_left).split_at_mut(below);
+    let ends = starts.iter().skip(1).copied().chain([choices.len()]);
+    let ranges: Vec<Range<usize>> = starts.iter().zip(ends).map(|(&s, e)| s..e).collect();
+    (ranges.into_par_iter())
+        .map(|range| (range.clone(), Output::of(&choices[range])))
+        .collect()
+}
+
+/// Where a pass writes.
+struct Out<'a> {
+    /// The tree's nodes not yet written, from node `start` on: the pass's pairs go into
+    /// its end, from the last node down.
+    tree: &'a mut [Bvh2Node],
+    start: usize,
+    next: Next<'a>,
+}
+
+/// Where a pass puts the nodes for the next one.
+enum Next<'a> {
+    /// From the start of this array.
+    Apart(&'a mut [Bvh2Node]),
+    /// From the start of [`Out::tree`], below the pass's pairs.
+    BelowPairs,
+}
+
+/// Walks `nodes` with their `choices` as `plan` divides them, writing the merged pairs
+/// and the next pass's nodes where `out` says. Returns the number of nodes for the next
+/// pass.
+fn walk(nodes: &[Bvh2Node], choices: &[i8], plan: &[(Range<usize>, Output)], out: Out) -> usize {
+    let merges: usize = plan.iter().map(|(_, output)| output.merges).sum();
+    let kept: usize = plan.iter().map(|(_, output)| output.kept).sum();
+    let below = out.tree.len() - 2 * merges;
+    let (low, pairs) = out.tree.split_at_mut(below);
+    let next = match out.next {
+        Next::Apart(next) => &mut next[..kept],
+        Next::BelowPairs => &mut low[..kept],
+    };
+    // Each piece's share of the pairs (downwards) and of `next` (upwards), in order.
+    let (mut pairs_left, mut next_left) = (pairs, next);
+    let mut work = Vec::with_capacity(plan.len());
+    for (range, output) in plan {
+        let mine_from = pairs_left.len() - 2 * output.merges;
+        let (lower, mine) = std::mem::take(&mut pairs_left).split_at_mut(mine_from);
         let (their_next, later) = std::mem::take(&mut next_left).split_at_mut(output.kept);
-        work.push((start..end, Pass::new(mine, below, their_next)));
-        (tree_left, next_left) = (lower, later);
-        kept += output.kept;
+        let base = out.start + below + mine_from;
+        work.push((range.clone(), Pass::new(mine, base, their_next)));
+        (pairs_left, next_left) = (lower, later);
     }
-    work.into_par_iter().for_each(|(range, mut out)| {
-        out.walk(&nodes[range.clone()], &choices[range]);
-        debug_assert!(out.free == out.base && out.kept == out.next.len());
-    });
-    // What no piece writes to: the tree's nodes still unwritten.
-    (tree_left.len(), kept)
+    let each = |(range, mut pass): (Range<usize>, Pass)| {
+        pass.walk(&nodes[range.clone()], &choices[range]);
+        debug_assert!(pass.free == pass.base && pass.kept == pass.next.len());
+    };
+    if work.len() == 1 {
+        work.into_iter().for_each(each);
+    } else {
+        work.into_par_iter().for_each(each);
+    }
+    kept
 }
 
 /// Whether a run of `len` nodes no mutual choice merged is paired up in order.
@@ -304,19 +377,23 @@ mod tests {
     use super::*;
     use glam::Vec3A;
 
-    /// The tree `build` makes over `boxes`, checked: every primitive in exactly one leaf,
-    /// and every inner node's box the union of its children's. Returns its depth (a lone
-    /// leaf: 1) and the passes made.
+    /// The tree `build` makes over `boxes`, checked: in the leaves' array, every primitive
+    /// in exactly one leaf, and every inner node's box the union of its children's.
+    /// Returns its depth (a lone leaf: 1) and the passes made.
     fn checked_tree(boxes: &[Aabb]) -> (usize, usize) {
         let count = boxes.len();
         let mut bvh2 = Bvh2::zeroed(0);
-        bvh2.nodes = vec![Bvh2Node::default(); 2 * count - 1];
         bvh2.primitive_indices = (0..count as u32).collect();
-        let leaves = (boxes.iter().enumerate())
-            .map(|(i, b)| Bvh2Node::new(*b, 1, i as u32))
-            .collect();
+        let mut leaves = Vec::with_capacity(2 * count - 1);
+        leaves.extend((boxes.iter().enumerate()).map(|(i, b)| Bvh2Node::new(*b, 1, i as u32)));
+        let array = leaves.as_ptr();
         let total = boxes.iter().fold(Aabb::empty(), |all, b| all.union(b));
         let passes = build(&mut bvh2, leaves, total);
+        assert_eq!(bvh2.nodes.len(), 2 * count - 1);
+        assert!(
+            bvh2.nodes.as_ptr() == array,
+            "the leaves' array is the tree's"
+        );
         let mut seen = vec![false; boxes.len()];
         let mut depth = 0;
         let mut stack = vec![(0usize, 1usize)];
@@ -351,7 +428,8 @@ mod tests {
     fn a_pass_walked_in_pieces_writes_what_one_walk_writes() {
         // Random boxes with stretches of copies among them, so that a pass has mutual
         // pairs, short runs and long runs (paired up), some across the places where
-        // pieces would start if they were not moved to a pair's start.
+        // pieces would start if they were not moved to a pair's start. Leaves, so that
+        // the parents the pass makes (no primitives) are told apart.
         let mut random = crate::test_random::XorShift::new(7);
         let mut nodes = Vec::new();
         for stretch in 0.. {
@@ -367,7 +445,7 @@ mod tests {
                 15 => 3 * LONG_RUN + 1,
                 _ => 1,
             };
-            let copy = Bvh2Node::new(Aabb::new(corner, corner + size), 0, nodes.len() as u32);
+            let copy = Bvh2Node::new(Aabb::new(corner, corner + size), 1, nodes.len() as u32);
             nodes.extend(std::iter::repeat_n(copy, copies));
         }
         let bits = |nodes: &[Bvh2Node]| -> Vec<_> {
@@ -381,13 +459,34 @@ mod tests {
         };
         let mut choices = vec![0i8; nodes.len()];
         choose(&nodes, &mut choices);
-        let written = |piece: usize| {
+        // The pass's pairs and next nodes, walked in pieces of `piece`, its next nodes
+        // in an array apart or below its pairs, its tree starting at node `start` (the
+        // parents it makes refer to their pairs by the tree's numbering: given here as
+        // if it started at 0).
+        let written = |piece: usize, below_pairs: bool, start: usize| {
             let mut tree = vec![Bvh2Node::default(); 2 * nodes.len()];
-            let mut next = vec![Bvh2Node::default(); nodes.len()];
-            let (free, kept) = pass(&nodes, &choices, &mut tree, &mut next, piece);
-            (free, bits(&tree[free..]), bits(&next[..kept]))
+            let mut apart = vec![Bvh2Node::default(); nodes.len()];
+            let plan = plan(&choices, piece);
+            let next = if below_pairs {
+                Next::BelowPairs
+            } else {
+                Next::Apart(&mut apart)
+            };
+            let out = Out {
+                tree: &mut tree,
+                start,
+                next,
+            };
+            let kept = walk(&nodes, &choices, &plan, out);
+            let merges: usize = plan.iter().map(|(_, output)| output.merges).sum();
+            let free = tree.len() - 2 * merges;
+            let mut next = if below_pairs { &tree } else { &apart }[..kept].to_vec();
+            for node in next.iter_mut().filter(|n| n.prim_count == 0) {
+                node.first_index -= start as u32;
+            }
+            (free, bits(&tree[free..]), bits(&next))
         };
-        let whole = written(nodes.len());
+        let whole = written(nodes.len(), false, 0);
         let merges = (2 * nodes.len() - whole.0) / 2;
         let pairs = (1..nodes.len())
             .filter(|&i| pair_at(&choices, i - 1))
@@ -398,7 +497,35 @@ mod tests {
             "{pairs} pairs, {merges} merges"
         );
         for piece in [1, 2, 3, 5, LONG_RUN, 1000, nodes.len() / 2] {
-            assert!(written(piece) == whole, "pieces of {piece}");
+            for (below_pairs, start) in [(false, 0), (true, 0), (false, 7)] {
+                assert!(
+                    written(piece, below_pairs, start) == whole,
+                    "pieces of {piece}, below the pairs {below_pairs}, from {start}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn passes_that_pair_every_node_make_the_tree_of_the_boxes_own_hierarchy() {
+        // Unit boxes along x at the numbers whose base-4 digits are 0 or 1: each pair of
+        // neighbours is nearer than the pairs beside it at every scale, so every pass
+        // pairs every node, the passes reading from the tree's nodes too, where their
+        // pairs reach into what they read: a tree (checked) as deep as a perfect one, in
+        // as many passes.
+        for levels in [1, 2, 3, 10] {
+            let count = 1usize << levels;
+            let boxes: Vec<Aabb> = (0..count)
+                .map(|i| {
+                    let x = (0..levels)
+                        .map(|bit| (i >> bit & 1) << (2 * bit))
+                        .sum::<usize>();
+                    let min = Vec3A::new(x as f32, 0.0, 0.0);
+                    Aabb::new(min, min + Vec3A::ONE)
+                })
+                .collect();
+            let (depth, passes) = checked_tree(&boxes);
+            assert_eq!((depth, passes), (levels + 1, levels), "{count} boxes");
         }
     }
 
