@@ -392,6 +392,16 @@ fn builds_enough(times: &[f64]) -> bool {
         || (times.len() >= BUILDS && times.iter().sum::<f64>() >= BUILD_SECONDS)
 }
 
+/// Times `build` into `times` until [`builds_enough`], each build dropped before the next.
+fn time_builds<T>(times: &mut Vec<f64>, build: impl Fn() -> T) {
+    while !builds_enough(times) {
+        let start = Instant::now();
+        let built = build();
+        times.push(start.elapsed().as_secs_f64());
+        drop(built);
+    }
+}
+
 /// The pixel-centre rays, in 8 × 8 groups of neighbouring pixels (as the renderer traces
 /// them), the same order for every tracer; through the scene's lens when it has one.
 fn camera_rays(scene: &TraceScene) -> Vec<Ray> {
@@ -471,21 +481,11 @@ fn trace_scene(
         // Embree's torus build read 0.36–0.46 s against 0.23–0.29 s after ours; we have not
         // found why, and this is the order of the earlier tables.)
         let mut build_times = [vec![first_build], Vec::new()];
-        while !builds_enough(&build_times[0]) {
-            let start = Instant::now();
-            let built = build();
-            build_times[0].push(start.elapsed().as_secs_f64());
-            drop(built);
-        }
+        time_builds(&mut build_times[0], build);
         let default = BuildPreset::default();
         if traced_preset.is_some_and(|preset| preset != default) {
             let mut times = Vec::new();
-            while !builds_enough(&times) {
-                let start = Instant::now();
-                let built = Scene::build_with(&scene.geometry, default);
-                times.push(start.elapsed().as_secs_f64());
-                drop(built);
-            }
+            time_builds(&mut times, || Scene::build_with(&scene.geometry, default));
             default_build_s = Some(median_of(times));
         }
         #[cfg(feature = "embree")]
