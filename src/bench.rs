@@ -71,7 +71,7 @@ pub const SCANNED_MODELS: [&str; 3] = ["stanford-bunny", "nefertiti", "ogre"];
 
 /// Throughput at one thread count, in millions of rays per second: one ray per query
 /// (`closest_hit`, `any_hit_hinted`: Embree's `rtcIntersect1`, `rtcOccluded1`), and the
-/// batch queries on runs of 64 neighbouring camera rays (`closest_hits`, `any_hits`: our
+/// batch queries on runs of 64 neighbouring rays (`closest_hits`, `any_hits`: our
 /// packets, Embree's coherent streams `rtcIntersect1M`, `rtcOccluded1M`).
 #[derive(Debug, Clone, Copy)]
 pub struct Throughput {
@@ -159,6 +159,9 @@ struct TraceScene {
     /// own point of the lens (of the lens grid's first cell, where the lens job's first
     /// sample takes it), so a group's rays share no origin.
     lens_radius: Option<f64>,
+    /// A point light: the traced rays are then shadow rays, from each camera ray's closest
+    /// hit toward it (see [`shadow_rays`]), instead of the camera rays.
+    light: Option<DVec3>,
 }
 
 /// Runs the benchmarks. `temp` is a scratch folder for files written on the way.
@@ -181,7 +184,8 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
     let name = format!("torus-{}k", 2 * rings * sides / 1000);
     let small_name = format!("{name} at {}x{}", width / 6, height / 6);
     let lens_name = format!("{name} through a lens");
-    if [&name, &small_name, &lens_name]
+    let shadow_name = format!("{name} shadow rays");
+    if [&name, &small_name, &lens_name, &shadow_name]
         .into_iter()
         .any(|n| wanted(n))
     {
@@ -203,6 +207,19 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
                 let scene = mesh_scene(&lens_name, &file, (width, height))?;
                 Ok(TraceScene {
                     lens_radius: Some(LENS_JOB.aperture),
+                    ..scene
+                })
+            }));
+        }
+        // Rays toward a light from the points the full-HD view's camera rays hit, what an
+        // any-hit query is for: where a camera ray meets the far side of the ring, its
+        // shadow ray crosses the near side or leaves the torus from within.
+        if wanted(&shadow_name) {
+            let file = file.clone();
+            scenes.push(Box::new(move || {
+                let scene = mesh_scene(&shadow_name, &file, (width, height))?;
+                Ok(TraceScene {
+                    light: Some(scene.target + SHADOW_LIGHT * (scene.eye - scene.target).length()),
                     ..scene
                 })
             }));
@@ -257,6 +274,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
                 vfov: 90.0,
                 size: (640, 480),
                 lens_radius: None,
+                light: None,
             })
         }));
     }
@@ -331,6 +349,7 @@ fn mesh_scene(name: &str, file: &Path, size: (u32, u32)) -> Result<TraceScene, S
         vfov: 40.0,
         size,
         lens_radius: None,
+        light: None,
     })
 }
 
@@ -373,6 +392,7 @@ fn sphere_field(count: usize, size: (u32, u32)) -> TraceScene {
         vfov: SPHERE_FIELD_VFOV,
         size,
         lens_radius: None,
+        light: None,
     }
 }
 
@@ -429,6 +449,35 @@ fn camera_rays(scene: &TraceScene) -> Vec<Ray> {
         .collect()
 }
 
+/// Where the shadow rays' light is, from the view's target, in units of the eye's distance
+/// to it: low and to the left behind the torus, so that much of what the eye sees faces
+/// away from it or lies in another part's shadow.
+const SHADOW_LIGHT: DVec3 = DVec3::new(-0.8, 0.35, -0.5);
+
+/// How far along a shadow ray its search begins: past the surface the ray leaves (the hit
+/// point, rounded, lies within about 10⁻⁶ of it on the bench's meshes), well short of any
+/// other.
+const SHADOW_TMIN: f64 = 1e-4;
+
+/// Shadow rays toward `light`: from each of `camera`'s rays with a closest hit in `scene`,
+/// from that hit, in the camera rays' order (neighbouring points toward one light, as
+/// [`AnyHitHint`] expects), with `tmin` [`SHADOW_TMIN`] and `tmax` the light's distance.
+fn shadow_rays(scene: &Scene, camera: &[Ray], light: DVec3) -> Vec<Ray> {
+    camera
+        .par_iter()
+        .filter_map(|ray| {
+            let origin = ray.at(scene.closest_hit(ray)?.t);
+            let to_light = light - origin;
+            Some(Ray {
+                origin,
+                direction: to_light.normalize(),
+                tmin: SHADOW_TMIN,
+                tmax: to_light.length(),
+            })
+        })
+        .collect()
+}
+
 fn trace_scene(
     scene: TraceScene,
     options: &BenchOptions,
@@ -453,6 +502,10 @@ fn trace_scene(
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
     });
     let rays = camera_rays(&scene);
+    let rays = match scene.light {
+        Some(light) => shadow_rays(&first, &rays, light),
+        None => rays,
+    };
     let hits = count_hits(&first, &rays, |t, r| t.closest_hit(r).is_some());
     let scene_bytes_per_primitive =
         first.counts().accel_bytes as f64 / (triangles + spheres).max(1) as f64;
@@ -1065,7 +1118,7 @@ impl BenchReport {
         let with_embree = self.scenes.iter().any(|s| s.embree.is_some());
         let _ = writeln!(
             out,
-            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring camera rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `rays that hit`: the share of the scene's camera rays with a closest hit; a miss costs any hit as much as closest hit, so where few rays hit, `any 1 / closest 1` stays near 1. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
+            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `rays that hit`: the share of the scene's rays with a closest hit (camera rays, one per pixel; for `shadow rays`, rays toward a light from the points the full-HD view's camera rays hit); a miss costs any hit as much as closest hit, so where few rays hit, `any 1 / closest 1` stays near 1. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
         );
         let _ = writeln!(
             out,
@@ -1220,6 +1273,58 @@ mod tests {
                 len >= 64 && len.is_multiple_of(64) && len <= 4096,
                 "{rays}: {len}"
             );
+        }
+    }
+
+    /// A shadow ray starts where its camera ray hit and ends at the light: camera rays
+    /// straight down onto a floor at y = 0 (two triangles, x and z in [-4, 4]) make rays
+    /// from (x, 0, z) toward a light at (0, 10, 0), which the floor they leave never
+    /// stops (though their float32 hits lie a little below it, where a search from t = 0
+    /// would meet it) and a square at y = 5 over x, z in [-1, 1] stops exactly where the line to the
+    /// light crosses it (|x|, |z| < 2). A camera ray that misses makes none.
+    #[test]
+    fn shadow_rays_leave_the_hit_surface_for_the_light() {
+        let square = |y: f32, half: f32| {
+            let [a, b, c, d] = [[-1, -1], [1, -1], [1, 1], [-1, 1]]
+                .map(|[x, z]| [x as f32 * half, y, z as f32 * half]);
+            [[a, b, c], [a, c, d]]
+        };
+        let light = DVec3::new(0.0, 10.0, 0.0);
+        let down = |x: f64, z: f64| Ray {
+            // 2.7 rounds up in float32, and so does the float32 hit's distance.
+            origin: DVec3::new(x, 2.7, z),
+            direction: DVec3::NEG_Y,
+            tmin: 0.0,
+            tmax: f64::INFINITY,
+        };
+        let camera: Vec<Ray> = [-3.5, -2.5, -1.5, -0.5, 0.5, 1.5, 2.5, 3.5, 4.5]
+            .into_iter()
+            .flat_map(|x| [-1.25, 0.75, 2.25].map(|z| down(x, z)))
+            .collect();
+        for blocker in [false, true] {
+            let mut geometry = SceneGeometry::default();
+            geometry.triangles.extend(square(0.0, 4.0));
+            if blocker {
+                geometry.triangles.extend(square(5.0, 1.0));
+            }
+            let scene = Scene::build(&geometry);
+            let shadows = shadow_rays(&scene, &camera, light);
+            let hitting: Vec<&Ray> = camera.iter().filter(|r| r.origin.x < 4.0).collect();
+            assert_eq!(shadows.len(), hitting.len(), "blocker {blocker}");
+            for (shadow, ray) in shadows.iter().zip(hitting) {
+                let floor = DVec3::new(ray.origin.x, 0.0, ray.origin.z);
+                assert!((shadow.origin - floor).length() < 1e-6, "{shadow:?}");
+                assert!(
+                    (shadow.at(shadow.tmax) - light).length() < 1e-6,
+                    "{shadow:?}"
+                );
+                let crossing = (floor.x.abs().max(floor.z.abs())) < 2.0;
+                assert_eq!(
+                    scene.any_hit(shadow),
+                    blocker && crossing,
+                    "blocker {blocker}: {shadow:?}"
+                );
+            }
         }
     }
 
