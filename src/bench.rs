@@ -217,11 +217,11 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         if wanted(&shadow_name) {
             let file = file.clone();
             scenes.push(Box::new(move || {
-                let scene = mesh_scene(&shadow_name, &file, (width, height))?;
-                Ok(TraceScene {
-                    light: Some(scene.target + SHADOW_LIGHT * (scene.eye - scene.target).length()),
-                    ..scene
-                })
+                Ok(toward_shadow_light(mesh_scene(
+                    &shadow_name,
+                    &file,
+                    (width, height),
+                )?))
             }));
         }
         // The same mesh at a sixth of the resolution: about 17 triangles per pixel, where
@@ -453,6 +453,16 @@ fn camera_rays(scene: &TraceScene) -> Vec<Ray> {
 /// to it: low and to the left behind the torus, so that much of what the eye sees faces
 /// away from it or lies in another part's shadow.
 const SHADOW_LIGHT: DVec3 = DVec3::new(-0.8, 0.35, -0.5);
+
+/// `scene` tracing shadow rays toward its light at [`SHADOW_LIGHT`] instead of its camera
+/// rays.
+fn toward_shadow_light(scene: TraceScene) -> TraceScene {
+    let light = scene.target + SHADOW_LIGHT * (scene.eye - scene.target).length();
+    TraceScene {
+        light: Some(light),
+        ..scene
+    }
+}
 
 /// How far along a shadow ray its search begins: past the surface the ray leaves (the hit
 /// point, rounded, lies within about 10⁻⁶ of it on the bench's meshes), well short of any
@@ -1326,6 +1336,40 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The shadow rays' row traces one ray for each camera ray of its view that hits (as
+    /// many as the plain view's closest-hit pass counts), and its light is placed so that
+    /// some of them are stopped and some reach it.
+    #[test]
+    fn the_shadow_row_traces_a_ray_for_each_camera_ray_that_hits() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = BenchOptions {
+            quick: true,
+            models: None,
+            threads: vec![1],
+            only: Vec::new(),
+            embree: false,
+            eight_lane_packets: false,
+        };
+        let file = dir.path().join("torus.obj");
+        let torus = crate::procedural::torus(1.0, 0.35, 40, 20);
+        std::fs::write(&file, crate::procedural::to_obj(&torus, "")).unwrap();
+        let view = || mesh_scene("torus", &file, (48, 32)).unwrap();
+        let plain = trace_scene(view(), &options, 1).unwrap();
+        let shadow = trace_scene(toward_shadow_light(view()), &options, 1).unwrap();
+        assert!(
+            plain.hits > 100 && plain.hits < plain.rays,
+            "{}",
+            plain.hits
+        );
+        assert_eq!(shadow.rays, plain.hits);
+        assert!(
+            shadow.hits > shadow.rays / 4 && shadow.hits < shadow.rays * 9 / 10,
+            "{} of {}",
+            shadow.hits,
+            shadow.rays
+        );
     }
 
     /// The bench builds its triangle tree as a job tracing all its passes' rays would: at
