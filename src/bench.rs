@@ -212,8 +212,8 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
             }));
         }
         // Rays toward a light from the points the full-HD view's camera rays hit, what an
-        // any-hit query is for: where a camera ray meets the far side of the ring, its
-        // shadow ray crosses the near side or leaves the torus from within.
+        // any-hit query is for: a point facing away from the light sends its ray into the
+        // tube, to be stopped by the tube's far wall, and parts of the ring shadow others.
         if wanted(&shadow_name) {
             let file = file.clone();
             scenes.push(Box::new(move || {
@@ -465,8 +465,8 @@ fn toward_shadow_light(scene: TraceScene) -> TraceScene {
 }
 
 /// How far along a shadow ray its search begins: past the surface the ray leaves (the hit
-/// point, rounded, lies within about 10⁻⁶ of it on the bench's meshes), well short of any
-/// other.
+/// point comes from a float32 distance of a few units, a few 10⁻⁷ off), well short of
+/// any other surface.
 const SHADOW_TMIN: f64 = 1e-4;
 
 /// Shadow rays toward `light`: from each of `camera`'s rays with a closest hit in `scene`,
