@@ -1344,17 +1344,8 @@ mod tests {
     #[test]
     fn the_shadow_row_traces_a_ray_for_each_camera_ray_that_hits() {
         let dir = tempfile::tempdir().unwrap();
-        let options = BenchOptions {
-            quick: true,
-            models: None,
-            threads: vec![1],
-            only: Vec::new(),
-            embree: false,
-            eight_lane_packets: false,
-        };
-        let file = dir.path().join("torus.obj");
-        let torus = crate::procedural::torus(1.0, 0.35, 40, 20);
-        std::fs::write(&file, crate::procedural::to_obj(&torus, "")).unwrap();
+        let options = quick_options(&[1]);
+        let file = torus_file(dir.path(), 40, 20);
         let view = || mesh_scene("torus", &file, (48, 32)).unwrap();
         let plain = trace_scene(view(), &options, 1).unwrap();
         let shadow = trace_scene(toward_shadow_light(view()), &options, 1).unwrap();
@@ -1380,18 +1371,9 @@ mod tests {
     #[test]
     fn the_bench_builds_its_tree_for_every_ray_it_traces() {
         let dir = tempfile::tempdir().unwrap();
-        let options = BenchOptions {
-            quick: true,
-            models: None,
-            threads: vec![1, 2],
-            only: Vec::new(),
-            embree: false,
-            eight_lane_packets: false,
-        };
+        let options = quick_options(&[1, 2]);
         for ((rings, sides), preset) in [((12, 10), "very fast"), ((20, 10), "fastest")] {
-            let file = dir.path().join(format!("torus-{rings}-{sides}.obj"));
-            let torus = crate::procedural::torus(1.0, 0.35, rings, sides);
-            std::fs::write(&file, crate::procedural::to_obj(&torus, "")).unwrap();
+            let file = torus_file(dir.path(), rings, sides);
             let scene = mesh_scene("torus", &file, (32, 32)).unwrap();
             let figures = trace_scene(scene, &options, 1).unwrap();
             assert_eq!(figures.triangles, 2 * (rings * sides) as usize);
@@ -1407,5 +1389,26 @@ mod tests {
                 "{rings}x{sides}"
             );
         }
+    }
+
+    /// `--quick` options tracing on `threads`, without Embree.
+    fn quick_options(threads: &[usize]) -> BenchOptions {
+        BenchOptions {
+            quick: true,
+            models: None,
+            threads: threads.to_vec(),
+            only: Vec::new(),
+            embree: false,
+            eight_lane_packets: false,
+        }
+    }
+
+    /// The bench's torus (major radius 1, minor 0.35) of `rings × sides` quads, written as
+    /// an OBJ file into `dir`.
+    fn torus_file(dir: &Path, rings: u32, sides: u32) -> PathBuf {
+        let file = dir.join(format!("torus-{rings}-{sides}.obj"));
+        let torus = crate::procedural::torus(1.0, 0.35, rings, sides);
+        std::fs::write(&file, crate::procedural::to_obj(&torus, "")).unwrap();
+        file
     }
 }
