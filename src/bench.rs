@@ -190,9 +190,7 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
         .any(|n| wanted(n))
     {
         let file = temp.join(format!("{name}.obj"));
-        let text =
-            crate::procedural::to_obj(&crate::procedural::torus(1.0, 0.35, rings, sides), "");
-        std::fs::write(&file, text).map_err(|e| format!("{}: {e}", file.display()))?;
+        write_torus(&file, rings, sides)?;
         torus_file = Some(file.clone());
         if wanted(&name) {
             let file = file.clone();
@@ -320,6 +318,14 @@ pub fn run(options: &BenchOptions, temp: &Path) -> Result<BenchReport, String> {
 
 /// The close-up's vertical field of view, degrees.
 const CLOSE_UP_VFOV: f64 = 6.0;
+
+/// Writes the bench's torus (major radius 1, minor 0.35) of `rings × sides` quads to
+/// `file` as OBJ.
+fn write_torus(file: &Path, rings: u32, sides: u32) -> Result<(), String> {
+    let torus = crate::procedural::torus(1.0, 0.35, rings, sides);
+    std::fs::write(file, crate::procedural::to_obj(&torus, ""))
+        .map_err(|e| format!("{}: {e}", file.display()))
+}
 
 fn mesh_scene(name: &str, file: &Path, size: (u32, u32)) -> Result<TraceScene, String> {
     let peak_baseline = reset_peak_memory();
@@ -496,7 +502,8 @@ fn trace_scene(
     let triangles = scene.geometry.triangles.len();
     let spheres = scene.geometry.spheres.len();
     // Built as a job tracing as many rays as the passes below would be: every ray, every
-    // query, every thread count, every round.
+    // query, every thread count, every round. Counted as camera rays for shadow rays too:
+    // a job tracing them traces the camera rays that find their origins as well.
     let (width, height) = scene.size;
     let traced = u64::from(width)
         * u64::from(height)
@@ -1290,8 +1297,8 @@ mod tests {
     /// straight down onto a floor at y = 0 (two triangles, x and z in [-4, 4]) make rays
     /// from (x, 0, z) toward a light at (0, 10, 0), which the floor they leave never
     /// stops (though their float32 hits lie a little below it, where a search from t = 0
-    /// would meet it) and a square at y = 5 over x, z in [-1, 1] stops exactly where the line to the
-    /// light crosses it (|x|, |z| < 2). A camera ray that misses makes none.
+    /// would meet it) and a square at y = 5 over x, z in [-1, 1] stops exactly where the
+    /// line to the light crosses it (|x|, |z| < 2). A camera ray that misses makes none.
     #[test]
     fn shadow_rays_leave_the_hit_surface_for_the_light() {
         let square = |y: f32, half: f32| {
@@ -1403,12 +1410,10 @@ mod tests {
         }
     }
 
-    /// The bench's torus (major radius 1, minor 0.35) of `rings × sides` quads, written as
-    /// an OBJ file into `dir`.
+    /// The bench's torus of `rings × sides` quads ([`write_torus`]), as a file in `dir`.
     fn torus_file(dir: &Path, rings: u32, sides: u32) -> PathBuf {
         let file = dir.join(format!("torus-{rings}-{sides}.obj"));
-        let torus = crate::procedural::torus(1.0, 0.35, rings, sides);
-        std::fs::write(&file, crate::procedural::to_obj(&torus, "")).unwrap();
+        write_torus(&file, rings, sides).unwrap();
         file
     }
 }
