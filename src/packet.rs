@@ -140,7 +140,8 @@ pub(crate) unsafe fn pop_within(
 /// A packet's inner-node test bounds all its rays at once, so it reaches every leaf that
 /// some ray *might* enter. When the rays spread over many small leaves (a detailed mesh
 /// seen at low resolution) most leaves it reaches are entered by no ray at all, and
-/// tracing the rays one by one is faster.
+/// tracing the rays one by one is faster. So too where an any-hit packet's rays are mostly
+/// stopped, but only after a search that hinted single rays skip ([`Visits::hints_pay`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Visits {
     /// Leaves reached.
@@ -149,6 +150,10 @@ pub struct Visits {
     pub entries: u32,
     /// Leaves some ray entered.
     pub entered: u32,
+    /// The packet's rays.
+    pub rays: u32,
+    /// Rays an any-hit packet stopped (0 for closest hit, and for a packet that gave up).
+    pub stopped: u32,
 }
 
 impl Visits {
@@ -190,6 +195,15 @@ impl Visits {
     /// (the sphere field at 64²), timing each packet against its rays one by one
     /// (DEVELOPERS.md, "Performance notes").
     pub const MOST_LEAVES_PER_ENTRY: u32 = 1;
+    /// An any-hit packet that stopped at least half its rays hands the next groups to
+    /// hinted single rays when its rays entered fewer than this percentage of the leaves
+    /// it reached ([`Visits::hints_pay`]). Timing each any-hit packet of `raybatch
+    /// bench`'s views against its rays one by one with the hint (a probe, not kept), and
+    /// replaying the pacing over those times: from 40%, the shadow rays' packets cost
+    /// 0.73 of what they did, through the lens 0.97, nefertiti and ogre 1.01; from 30%,
+    /// 0.80, 1.00 and 1.00; from 50%, 0.67, 0.98 and 1.03 (DEVELOPERS.md, "Hinted single
+    /// rays take over from some any-hit packets").
+    pub const HINTS_PAY_BELOW_ENTERED_PERCENT: u32 = 40;
 
     /// Whether so few rays entered the leaves the packet reached (at least
     /// [`Visits::WASTEFUL_FROM`]) that the next rays nearby are better traced one by one.
@@ -220,19 +234,39 @@ impl Visits {
     pub fn hopeless(self) -> bool {
         self.leaves >= Self::GIVE_UP_FROM && self.wasteful()
     }
+
+    /// Whether an any-hit packet that reached at least [`Visits::JUDGED_FROM`] leaves
+    /// stopped at least half its rays, while fewer than
+    /// [`Visits::HINTS_PAY_BELOW_ENTERED_PERCENT`] percent of those leaves were entered by
+    /// any ray: the packet's bounds take in far more than its rays' paths, and the next
+    /// rays nearby are better traced one by one, where each ray tests first the triangle
+    /// that stopped the ray before it ([`crate::AnyHitHint`]). So shadow rays from
+    /// neighbouring points toward one light: the packet searches the leaves around their
+    /// origins and between them, while a hinted ray is mostly stopped by its neighbour's
+    /// triangle before any search.
+    pub fn hints_pay(self) -> bool {
+        self.leaves >= Self::JUDGED_FROM
+            && self.stopped > 0
+            && 2 * self.stopped >= self.rays
+            && 100 * u64::from(self.entered)
+                < u64::from(Self::HINTS_PAY_BELOW_ENTERED_PERCENT) * u64::from(self.leaves)
+    }
 }
 
 /// A tree that packets cross, each with its own pacing: a thread's sphere packets may
-/// pay where its triangle packets do not.
+/// pay where its triangle packets do not. Any-hit packets through the triangles are paced
+/// apart from closest-hit ones, as hinted single rays may beat only the former
+/// ([`Visits::hints_pay`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PacedTree {
     Triangles,
+    TrianglesAnyHit,
     Spheres,
 }
 
 thread_local! {
     /// This thread's pacing of packets per [`PacedTree`].
-    static PACING: [Cell<Pacing>; 2] = const { [Cell::new(Pacing::FRESH), Cell::new(Pacing::FRESH)] };
+    static PACING: [Cell<Pacing>; 3] = const { [const { Cell::new(Pacing::FRESH) }; 3] };
     /// The triangles that stopped every ray of this thread's last any-hit packet that
     /// hit, when there were at most [`Stoppers::MOST`] of them: its next any-hit packet
     /// tests them before its traversal.
@@ -286,7 +320,8 @@ pub const SINGLE_AFTER_WASTE: u32 = 2;
 pub const MOST_SINGLE_AFTER_WASTE: u32 = 128;
 
 /// Whether this thread's next group of rays should be tried as a packet through `tree`:
-/// not for a while after a [`wasteful`](Visits::wasteful) one. Either way gives the same
+/// not for a while after a [`wasteful`](Visits::wasteful) one, or one whose rays hinted
+/// single rays would stop for less ([`Visits::hints_pay`]). Either way gives the same
 /// hits; this only picks the faster.
 pub fn worth_trying(tree: PacedTree) -> bool {
     PACING.with(|pacing| {
@@ -302,7 +337,10 @@ pub fn worth_trying(tree: PacedTree) -> bool {
 
 /// Whether the wasteful packet that began this thread's spell of groups traced one by
 /// one through `tree` found its rays [`scattered`](Visits::scattered): then they are
-/// better traced side by side ([`crate::interleaved`]) than one after the other.
+/// better traced side by side ([`crate::interleaved`]) than one after the other. Never
+/// after a packet judged only by [`Visits::hints_pay`]: side by side, a ray tests only
+/// its previous ray's block, not its neighbours' (the bench's shadow rays ran at 0.36x
+/// the speed of hinted single rays).
 pub fn scattered(tree: PacedTree) -> bool {
     PACING.with(|pacing| pacing[tree as usize].get().scattered)
 }
@@ -315,11 +353,11 @@ pub fn record(tree: PacedTree, visits: Visits) {
     PACING.with(|pacing| {
         let pacing = &pacing[tree as usize];
         let next = pacing.get().next;
-        pacing.set(if visits.wasteful() {
+        pacing.set(if visits.wasteful() || visits.hints_pay() {
             Pacing {
                 left: next,
                 next: (2 * next).min(MOST_SINGLE_AFTER_WASTE),
-                scattered: visits.scattered(),
+                scattered: visits.wasteful() && visits.scattered(),
             }
         } else {
             Pacing::FRESH
@@ -547,7 +585,10 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
     any: &mut [bool],
 ) -> Option<Visits> {
     let n = rays.len();
-    let mut visits = Visits::default();
+    let mut visits = Visits {
+        rays: n as u32,
+        ..Visits::default()
+    };
     // Per-ray values, in rows of eight lanes; lanes past `n` repeat the last ray but
     // never hit (their tmax is −∞). Written whole below before any read: zeroing them
     // first cost every packet a 4 kB memset (DEVELOPERS.md).
@@ -697,6 +738,7 @@ unsafe fn traverse<const ANY: bool, const WIDE: bool, const SHIFTED: bool>(
             }
             if ANY {
                 STOPPERS.set(if found == 0 { hint } else { stoppers.hint() });
+                visits.stopped = found.count_ones();
             }
             return Some(visits);
         }};
@@ -1634,22 +1676,26 @@ mod tests {
             leaves,
             entries: leaves / Visits::MOST_LEAVES_PER_ENTRY - 1,
             entered: 20,
+            ..Visits::default()
         };
         let useful = Visits {
             leaves,
             entries: leaves / Visits::MOST_LEAVES_PER_ENTRY,
             entered: 20,
+            ..Visits::default()
         };
         // Too few leaves to be wasteful, even with no ray entering them: it ends a spell.
         let few_leaves = Visits {
             leaves: Visits::WASTEFUL_FROM - 1,
             entries: 0,
             entered: 0,
+            ..Visits::default()
         };
         let unjudged = Visits {
             leaves: Visits::JUDGED_FROM - 1,
             entries: 0,
             entered: 0,
+            ..Visits::default()
         };
         assert!(wasteful.wasteful() && !useful.wasteful());
         assert!(!few_leaves.wasteful() && !unjudged.wasteful());
@@ -1669,17 +1715,21 @@ mod tests {
                 .count();
             single as u32
         };
-        for (tree, other) in [
-            (PacedTree::Triangles, PacedTree::Spheres),
-            (PacedTree::Spheres, PacedTree::Triangles),
-        ] {
+        let trees = [
+            PacedTree::Triangles,
+            PacedTree::TrianglesAnyHit,
+            PacedTree::Spheres,
+        ];
+        for tree in trees {
             assert_eq!(spell(tree), 0);
             record(tree, unjudged);
             assert_eq!(spell(tree), 0);
             for expected in [2, 4, 8, 16, 32, 64, 128, 128] {
                 record(tree, wasteful);
-                // The other tree's packets are still tried.
-                assert_eq!(spell(other), 0);
+                // The other trees' packets are still tried.
+                for other in trees.into_iter().filter(|&other| other != tree) {
+                    assert_eq!(spell(other), 0);
+                }
                 assert_eq!(spell(tree), expected);
             }
             // A useful packet ends the doubling, and so does one reaching too few leaves
@@ -1706,6 +1756,7 @@ mod tests {
             leaves: 200,
             entries,
             entered: 32,
+            ..Visits::default()
         };
         let (scattered, shared) = (visits(34), visits(35));
         assert!(scattered.wasteful() && shared.wasteful());
@@ -1716,6 +1767,7 @@ mod tests {
                 leaves: 200,
                 entries: entered,
                 entered,
+                ..Visits::default()
             };
             assert!(few.wasteful() && !few.scattered());
         }
@@ -1726,6 +1778,7 @@ mod tests {
                 leaves: 200,
                 entries: entered,
                 entered,
+                ..Visits::default()
             };
             assert!(edge.wasteful() && edge.scattered());
         }
@@ -1747,6 +1800,81 @@ mod tests {
         );
         assert!(worth_trying(tree) && !super::scattered(tree));
         assert!(!super::scattered(PacedTree::Spheres));
+    }
+
+    /// An any-hit packet that stopped at least half its rays after reaching at least
+    /// [`Visits::JUDGED_FROM`] leaves, fewer than 40% of them entered by a ray, sends the
+    /// thread's next any-hit groups through the triangles one by one, in the same
+    /// doubling spells as a wasteful packet, and never side by side (there a ray tests
+    /// only its own previous block, not its neighbour's). Closest-hit packets, sphere
+    /// packets and closest-hit packets through the same triangles are still tried.
+    #[test]
+    fn an_any_hit_packet_stopped_after_a_wide_search_hands_the_next_groups_to_hints() {
+        let visits = |leaves, entered, stopped| Visits {
+            leaves,
+            // At least one ray per leaf reached: not wasteful.
+            entries: 2 * leaves,
+            entered,
+            rays: 64,
+            stopped,
+        };
+        // 39 entered leaves of 100 is under 40%; 40 is not. Half the rays stopped is
+        // enough; one fewer is not; a closest-hit packet stops none.
+        let shadow = visits(100, 39, 32);
+        assert!(!shadow.wasteful() && shadow.hints_pay());
+        for not in [visits(100, 40, 64), visits(100, 39, 31), visits(100, 0, 0)] {
+            assert!(!not.hints_pay(), "{not:?}");
+        }
+        // Fewer leaves than a packet is judged from say nothing.
+        let unjudged = visits(Visits::JUDGED_FROM - 1, 0, 64);
+        assert!(!unjudged.hints_pay());
+        // A partial packet: half of its 10 rays.
+        let partial = Visits {
+            rays: 10,
+            ..visits(100, 10, 5)
+        };
+        assert!(
+            partial.hints_pay()
+                && !Visits {
+                    stopped: 4,
+                    ..partial
+                }
+                .hints_pay()
+        );
+        // Each test runs on its own thread: the pacing starts fresh.
+        let tree = PacedTree::TrianglesAnyHit;
+        let spell = |tree| {
+            std::iter::repeat_with(|| worth_trying(tree))
+                .take_while(|&packet| !packet)
+                .count() as u32
+        };
+        for expected in [2, 4, 8] {
+            record(tree, shadow);
+            assert!(!super::scattered(tree));
+            assert_eq!(spell(PacedTree::Triangles), 0);
+            assert_eq!(spell(PacedTree::Spheres), 0);
+            assert_eq!(spell(tree), expected);
+        }
+        record(tree, unjudged);
+        record(tree, shadow);
+        assert_eq!(spell(tree), 16);
+        // A packet that does not pay for hints ends the doubling.
+        record(tree, visits(100, 40, 64));
+        record(tree, shadow);
+        assert_eq!(spell(tree), SINGLE_AFTER_WASTE);
+        // Too few leaves to be wasteful, its rays scattered (each entered leaf entered by
+        // one ray), and most of them stopped (here by the last packet's triangles,
+        // before any leaf): one by one, not side by side.
+        let scattered = Visits {
+            leaves: Visits::WASTEFUL_FROM - 1,
+            entries: 20,
+            entered: 20,
+            rays: 64,
+            stopped: 40,
+        };
+        assert!(!scattered.wasteful() && scattered.scattered() && scattered.hints_pay());
+        record(tree, scattered);
+        assert!(!super::scattered(tree));
     }
 
     /// An any-hit packet whose rays were all stopped by one or two triangles leaves them

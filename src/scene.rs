@@ -755,7 +755,9 @@ impl Scene {
     }
 
     /// [`Scene::any_hit`] for many rays: `out[i]` receives ray `i`'s answer, with coherent
-    /// runs traced as packets as in [`Scene::closest_hits`].
+    /// runs traced as packets as in [`Scene::closest_hits`]. Runs traced one by one carry
+    /// an [`AnyHitHint`] from ray to ray, which after some packets (shadow rays from
+    /// neighbouring points, [`crate::packet::Visits::hints_pay`]) is the faster way.
     pub fn any_hits(&self, rays: &[Ray], out: &mut [bool]) {
         assert_eq!(rays.len(), out.len());
         let analytic = !self.planes.is_empty() || !self.sphere_bvh.is_empty();
@@ -782,7 +784,7 @@ impl Scene {
                 };
                 // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
                 // `wide_leaves` only when it has AVX-512F too.
-                match self.traced_as_packet(PacedTree::Triangles, self.simd, || unsafe {
+                match self.traced_as_packet(PacedTree::TrianglesAnyHit, self.simd, || unsafe {
                     crate::packet::any(
                         self.leaf_lanes(),
                         &self.triangles.bvh,
@@ -815,6 +817,29 @@ impl Scene {
             for (ray, out) in rays.iter().zip(out.iter_mut()) {
                 *out = *out || self.any_triangle(ray, &mut hint);
             }
+        }
+    }
+
+    /// What an any-hit packet of `rays` (at most [`PACKET`]) visits in the triangles' tree,
+    /// traced as [`Scene::any_hits`] traces one whatever the pacing; `None` where the CPU
+    /// or the rays allow no packet.
+    #[cfg(all(test, target_arch = "x86_64"))]
+    pub(crate) fn any_hit_packet_visits(&self, rays: &[Ray]) -> Option<crate::packet::Visits> {
+        if !self.simd {
+            return None;
+        }
+        let n = rays.len();
+        let prepared = triangle_rays(self.avx2, rays, |_, ray| ray.tmax);
+        let mut out = [false; PACKET];
+        // SAFETY: as in `any_hits`.
+        unsafe {
+            crate::packet::any(
+                self.leaf_lanes(),
+                &self.triangles.bvh,
+                &self.triangles.blocks,
+                &prepared[..n],
+                &mut out[..n],
+            )
         }
     }
 
@@ -1224,7 +1249,9 @@ pub enum Grouping {
     /// As packets where the CPU and the rays allow, until packets prove wasteful
     /// ([`crate::packet::Visits`]); then, for a while, one by one, or through the
     /// triangles side by side ([`crate::interleaved`]) where the wasteful packet found
-    /// its rays scattered, each in leaves of its own.
+    /// its rays scattered, each in leaves of its own. Any-hit groups also go one by one
+    /// for a while after a packet whose rays the hint would have stopped for less
+    /// ([`crate::packet::Visits::hints_pay`]).
     #[default]
     Paced,
     /// Every group that can be a packet is one, even after wasteful packets (but for a
