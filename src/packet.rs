@@ -201,8 +201,8 @@ impl Visits {
     /// bench`'s views against its rays one by one with the hint (a probe, not kept), and
     /// replaying the pacing over those times: from 40%, the shadow rays' packets cost
     /// 0.73 of what they did, through the lens 0.97, nefertiti and ogre 1.01; from 30%,
-    /// 0.80, 1.00 and 1.00; from 50%, 0.67, 0.98 and 1.03 (DEVELOPERS.md, "Hinted single
-    /// rays take over from some any-hit packets").
+    /// 0.80, 1.00 and 1.00; from 50%, 0.67, 0.98 and 1.02–1.03 (DEVELOPERS.md, "Hinted
+    /// single rays take over from some any-hit packets").
     pub const HINTS_PAY_BELOW_ENTERED_PERCENT: u32 = 40;
 
     /// Whether so few rays entered the leaves the packet reached (at least
