@@ -150,9 +150,10 @@ pub struct Visits {
     pub entries: u32,
     /// Leaves some ray entered.
     pub entered: u32,
-    /// The packet's rays.
+    /// The packet's rays (0 for sphere packets, which do not count them).
     pub rays: u32,
-    /// Rays an any-hit packet stopped (0 for closest hit, and for a packet that gave up).
+    /// Rays an any-hit packet through the triangles stopped (0 for closest hit, for
+    /// sphere packets, and for a packet that gave up).
     pub stopped: u32,
 }
 
