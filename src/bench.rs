@@ -1422,7 +1422,8 @@ mod tests {
     /// rays ([`crate::packet::Visits::hints_pay`]), the camera rays' of the same view
     /// hardly ever: the bench's view of a 160,000-triangle torus at 640x360, each group
     /// of 64 rays as the batch queries take them, of the packets that reach enough
-    /// leaves to be judged.
+    /// leaves to be judged. The batch queries, switching between the two ways, answer as
+    /// the scalar path does ray by ray.
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn shadow_rays_give_their_any_hit_packets_to_hints_and_camera_rays_do_not() {
@@ -1432,9 +1433,17 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let file = torus_file(dir.path(), 400, 200);
         let view = toward_shadow_light(mesh_scene("torus", &file, (640, 360)).unwrap());
-        let scene = Scene::build(&view.geometry);
+        let mut scene = Scene::build(&view.geometry);
         let camera = camera_rays(&view);
         let shadow = shadow_rays(&scene, &camera, view.light.unwrap());
+        scene.set_simd(false);
+        let scalar: Vec<bool> = shadow.iter().map(|r| scene.any_hit(r)).collect();
+        scene.set_simd(true);
+        let mut batch = vec![false; shadow.len()];
+        for (rays, out) in shadow.chunks(64).zip(batch.chunks_mut(64)) {
+            scene.any_hits(rays, out);
+        }
+        assert!(batch == scalar, "the batch queries' answers differ");
         // (packets judged, and how many of them the hint pays for)
         let judged = |rays: &[Ray]| {
             let judged: Vec<_> = (rays.chunks(crate::packet::PACKET))
