@@ -1807,8 +1807,8 @@ mod tests {
     /// [`Visits::JUDGED_FROM`] leaves, fewer than 40% of them entered by a ray, sends the
     /// thread's next any-hit groups through the triangles one by one, in the same
     /// doubling spells as a wasteful packet, and never side by side (there a ray tests
-    /// only its own previous block, not its neighbour's). Closest-hit packets, sphere
-    /// packets and closest-hit packets through the same triangles are still tried.
+    /// only its own previous block, not its neighbour's). The thread's closest-hit
+    /// packets through the same triangles, and its sphere packets, are still tried.
     #[test]
     fn an_any_hit_packet_stopped_after_a_wide_search_hands_the_next_groups_to_hints() {
         let visits = |leaves, entered, stopped| Visits {
@@ -1834,14 +1834,11 @@ mod tests {
             rays: 10,
             ..visits(100, 10, 5)
         };
-        assert!(
-            partial.hints_pay()
-                && !Visits {
-                    stopped: 4,
-                    ..partial
-                }
-                .hints_pay()
-        );
+        let fewer = Visits {
+            stopped: 4,
+            ..partial
+        };
+        assert!(partial.hints_pay() && !fewer.hints_pay());
         // Each test runs on its own thread: the pacing starts fresh.
         let tree = PacedTree::TrianglesAnyHit;
         let spell = |tree| {
