@@ -782,16 +782,9 @@ impl Scene {
                         if out[k] { f64::NEG_INFINITY } else { ray.tmax }
                     })
                 };
-                // SAFETY: `simd` is set only when the CPU has AVX2 and the stack fits,
-                // `wide_leaves` only when it has AVX-512F too.
+                // SAFETY: traced only where `simd` is set.
                 match self.traced_as_packet(PacedTree::TrianglesAnyHit, self.simd, || unsafe {
-                    crate::packet::any(
-                        self.leaf_lanes(),
-                        &self.triangles.bvh,
-                        &self.triangles.blocks,
-                        &prepared()[..n],
-                        &mut triangles[..n],
-                    )
+                    self.any_triangle_packet(&prepared()[..n], &mut triangles[..n])
                 }) {
                     GroupTrace::Packet => {
                         for (out, hit) in out.iter_mut().zip(triangles) {
@@ -830,15 +823,30 @@ impl Scene {
         }
         let n = rays.len();
         let prepared = triangle_rays(self.avx2, rays, |_, ray| ray.tmax);
-        let mut out = [false; PACKET];
-        // SAFETY: as in `any_hits`.
+        // SAFETY: `simd` is set.
+        unsafe { self.any_triangle_packet(&prepared[..n], &mut [false; PACKET][..n]) }
+    }
+
+    /// [`crate::packet::any`] through the triangles' tree, at the scene's leaf width.
+    ///
+    /// # Safety
+    /// Only where `simd` is set: only when the CPU has AVX2 and the stack fits (and
+    /// `wide_leaves` only when it has AVX-512F too).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn any_triangle_packet(
+        &self,
+        rays: &[TriangleRay],
+        out: &mut [bool],
+    ) -> Option<crate::packet::Visits> {
+        // SAFETY: as required of the caller.
         unsafe {
             crate::packet::any(
                 self.leaf_lanes(),
                 &self.triangles.bvh,
                 &self.triangles.blocks,
-                &prepared[..n],
-                &mut out[..n],
+                rays,
+                out,
             )
         }
     }
