@@ -84,6 +84,11 @@ pub struct Throughput {
     /// Any hit, one ray per query, without a hint (`any_hit`).
     pub any_unhinted: f64,
     pub any_batch: f64,
+    /// `closest` and `any` over the rays that hit alone (in their order, the misses left
+    /// out; 0 where none hits): what any hit saves on a hit, apart from the misses, which
+    /// cost both queries alike.
+    pub closest_on_hits: f64,
+    pub any_on_hits: f64,
 }
 
 /// One tracer's figures for one scene.
@@ -502,12 +507,13 @@ fn trace_scene(
     let triangles = scene.geometry.triangles.len();
     let spheres = scene.geometry.spheres.len();
     // Built as a job tracing as many rays as the passes below would be: every ray, every
-    // query, every thread count, every round. Counted as camera rays for shadow rays too:
+    // query over every ray, every thread count, every round (the passes over the rays that
+    // hit, found only once a tree is built, trace some of them again). Counted as camera rays for shadow rays too:
     // a job tracing them traces the camera rays that find their origins as well.
     let (width, height) = scene.size;
     let traced = u64::from(width)
         * u64::from(height)
-        * (Query::ALL.len() * options.threads.len() * (runs.max(1) + 1)) as u64;
+        * (Query::OVER_EVERY_RAY * options.threads.len() * (runs.max(1) + 1)) as u64;
     let build = || Scene::build_for_rays(&scene.geometry, traced);
 
     // The first build sets the peak (loading and building); later ones reuse the memory.
@@ -523,7 +529,8 @@ fn trace_scene(
         Some(light) => shadow_rays(&first, &rays, light),
         None => rays,
     };
-    let hits = count_hits(&first, &rays, |t, r| t.closest_hit(r).is_some());
+    let hit_rays = rays_that_hit(&first, &rays);
+    let hits = hit_rays.len();
     let scene_bytes_per_primitive =
         first.counts().accel_bytes as f64 / (triangles + spheres).max(1) as f64;
     drop(first);
@@ -574,7 +581,7 @@ fn trace_scene(
         if options.eight_lane_packets {
             ours.set_wide_leaves(false);
         }
-        let ours_pass = |query| trace_pass(&ours, &rays, query);
+        let ours_pass = |query: Query| trace_pass(&ours, query.rays(&rays, &hit_rays), query);
         #[cfg(feature = "embree")]
         let reference_pass = reference.as_ref().map(|reference| {
             let reference_hits = count_hits(reference, &rays, |t, r| t.closest_hit(r).is_some());
@@ -586,8 +593,9 @@ fn trace_scene(
             }
             // Without the backend's check of each ray (these are all finite), as a
             // program calling Embree traces them.
-            let (reference, rays) = (crate::embree::Unchecked(reference), &rays);
-            move |query| trace_pass(&reference, rays, query)
+            let (reference, rays, hit_rays) =
+                (crate::embree::Unchecked(reference), &rays, &hit_rays);
+            move |query: Query| trace_pass(&reference, query.rays(rays, hit_rays), query)
         });
         #[cfg(not(feature = "embree"))]
         let reference_pass: Option<fn(Query) -> usize> = None;
@@ -595,7 +603,7 @@ fn trace_scene(
             .chain(reference_pass.as_ref().map(|pass| pass as _))
             .collect();
         let (throughputs, scaling) =
-            throughputs(&tracers, rays.len(), &options.threads, &pools, runs);
+            throughputs(&tracers, (&rays, &hit_rays), &options.threads, &pools, runs);
         compute_loop_scaling = scaling;
         let mut figures = throughputs
             .into_iter()
@@ -624,32 +632,58 @@ fn trace_scene(
     })
 }
 
+/// The rays of `rays` with a closest hit in `scene`, in their order.
+fn rays_that_hit(scene: &Scene, rays: &[Ray]) -> Vec<Ray> {
+    rays.par_iter()
+        .filter(|r| scene.closest_hit(r).is_some())
+        .copied()
+        .collect()
+}
+
 /// The queries a throughput column times.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Query {
     Closest,
     ClosestBatch,
     AnyHinted,
     Any,
     AnyBatch,
+    /// `Closest` and `AnyHinted` over the rays that hit alone.
+    ClosestOnHits,
+    AnyHintedOnHits,
 }
 
 impl Query {
-    const ALL: [Query; 5] = [
+    const ALL: [Query; 7] = [
         Query::Closest,
         Query::ClosestBatch,
         Query::AnyHinted,
         Query::Any,
         Query::AnyBatch,
+        Query::ClosestOnHits,
+        Query::AnyHintedOnHits,
     ];
+
+    /// The passes over every ray (the others trace again some of their rays).
+    const OVER_EVERY_RAY: usize = 5;
+
+    /// The rays the query traces: `hit_rays` (those of `rays` that hit, in order) or all.
+    fn rays<'a>(self, rays: &'a [Ray], hit_rays: &'a [Ray]) -> &'a [Ray] {
+        match self {
+            Query::ClosestOnHits | Query::AnyHintedOnHits => hit_rays,
+            _ => rays,
+        }
+    }
 }
 
 /// Traces every ray once with `query`; returns the hit count (so the work is not elided).
 fn trace_pass<T: Tracer>(tracer: &T, rays: &[Ray], query: Query) -> usize {
     match query {
-        Query::Closest => count_hits(tracer, rays, |t, r| t.closest_hit(r).is_some()),
+        Query::Closest | Query::ClosestOnHits => {
+            count_hits(tracer, rays, |t, r| t.closest_hit(r).is_some())
+        }
         Query::ClosestBatch => count_batch_hits(tracer, rays, false),
-        Query::AnyHinted => count_hinted_hits(tracer, rays),
+        Query::AnyHinted | Query::AnyHintedOnHits => count_hinted_hits(tracer, rays),
         Query::Any => count_hits(tracer, rays, |t, r| t.any_hit(r)),
         Query::AnyBatch => count_batch_hits(tracer, rays, true),
     }
@@ -763,7 +797,7 @@ fn count_batch_hits<T: Tracer>(tracer: &T, rays: &[Ray], any: bool) -> usize {
 /// median of `runs`.
 fn throughputs(
     tracers: &[&(dyn Fn(Query) -> usize + Sync)],
-    rays: usize,
+    (rays, hit_rays): (&[Ray], &[Ray]),
     threads: &[usize],
     pools: &[rayon::ThreadPool],
     runs: usize,
@@ -806,8 +840,18 @@ fn throughputs(
                 .into_iter()
                 .zip(threads)
                 .map(|(columns, &threads)| {
-                    let [closest, closest_batch, any, any_unhinted, any_batch] =
-                        columns.map(|t| rays as f64 / median_of(t) / 1e6);
+                    let [
+                        closest,
+                        closest_batch,
+                        any,
+                        any_unhinted,
+                        any_batch,
+                        closest_on_hits,
+                        any_on_hits,
+                    ] = std::array::from_fn(|q| match Query::ALL[q].rays(rays, hit_rays).len() {
+                        0 => 0.0,
+                        traced => traced as f64 / median_of(columns[q].clone()) / 1e6,
+                    });
                     Throughput {
                         threads,
                         closest,
@@ -815,6 +859,8 @@ fn throughputs(
                         any,
                         any_unhinted,
                         any_batch,
+                        closest_on_hits,
+                        any_on_hits,
                     }
                 })
                 .collect()
@@ -1115,6 +1161,8 @@ impl BenchReport {
                     "closest_mrays": x.closest, "closest_batch_mrays": x.closest_batch,
                     "any_mrays": x.any, "any_unhinted_mrays": x.any_unhinted,
                     "any_batch_mrays": x.any_batch,
+                    "closest_on_hits_mrays": x.closest_on_hits,
+                    "any_on_hits_mrays": x.any_on_hits,
                 })).collect::<Vec<_>>(),
             })
         };
@@ -1141,16 +1189,24 @@ impl BenchReport {
 
     /// Markdown tables, as BENCHMARKS.md shows them.
     pub fn to_markdown(&self) -> String {
+        // `-` where there is nothing to compare (no ray hit).
+        let ratio = |a: f64, b: f64| {
+            if a > 0.0 && b > 0.0 {
+                format!("{:.2}x", a / b)
+            } else {
+                "-".to_string()
+            }
+        };
         use std::fmt::Write;
         let mut out = String::new();
         let with_embree = self.scenes.iter().any(|s| s.embree.is_some());
         let _ = writeln!(
             out,
-            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `rays that hit`: the share of the scene's rays with a closest hit (camera rays, one per pixel; for `shadow rays`, rays toward a light from the points the full-HD view's camera rays hit); a miss costs any hit as much as closest hit, so where few rays hit, `any 1 / closest 1` stays near 1. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
+            "Mrays/s. `1`: one ray per query; `64`: batches of 64 neighbouring rays (our packets, Embree's coherent streams). Our `any 1` carries an any-hit hint from ray to ray on each thread (Embree has none); `any 1 no hint` is the same query without it. `rays that hit`: the share of the scene's rays with a closest hit (camera rays, one per pixel; for `shadow rays`, rays toward a light from the points the full-HD view's camera rays hit); a miss costs any hit as much as closest hit, so where few rays hit, `any 1 / closest 1` stays near 1. `on hits`: the same two queries over the rays that hit alone, in their order: what any hit saves on a hit. `compute loop / 1 thread`: how much faster a loop of floating-point work that touches no memory ran on these threads than on one, in the same rounds: what the machine's cores allowed then.\n"
         );
         let _ = writeln!(
             out,
-            "| scene | primitives | rays that hit | threads | closest 1 | closest 64 | any 1 | any 1 no hint | any 64 | any 1 / closest 1 |{} compute loop / 1 thread |",
+            "| scene | primitives | rays that hit | threads | closest 1 | closest 64 | any 1 | any 1 no hint | any 64 | any 1 / closest 1 | any 1 / closest 1 on hits |{} compute loop / 1 thread |",
             if with_embree {
                 " Embree closest 1 | Embree closest 64 | Embree any 1 | Embree any 64 | closest 1 / Embree 1 | closest 64 / Embree 1 | closest 64 / Embree 64 |"
             } else {
@@ -1159,7 +1215,7 @@ impl BenchReport {
         );
         let _ = writeln!(
             out,
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|{}---:|",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|{}---:|",
             if with_embree {
                 "---:|---:|---:|---:|---:|---:|---:|"
             } else {
@@ -1175,7 +1231,7 @@ impl BenchReport {
             for (i, t) in s.raybatch.throughput.iter().enumerate() {
                 let _ = write!(
                     out,
-                    "| {} | {} | {:.1}% | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x |",
+                    "| {} | {} | {:.1}% | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x | {} |",
                     s.name,
                     primitives,
                     100.0 * s.hits as f64 / s.rays.max(1) as f64,
@@ -1185,7 +1241,8 @@ impl BenchReport {
                     t.any,
                     t.any_unhinted,
                     t.any_batch,
-                    t.any / t.closest
+                    t.any / t.closest,
+                    ratio(t.any_on_hits, t.closest_on_hits)
                 );
                 if let Some(e) = s.embree.as_ref().and_then(|e| e.throughput.get(i)) {
                     let _ = write!(
@@ -1496,6 +1553,77 @@ mod tests {
     }
 
     /// `--quick` options tracing on `threads`, without Embree.
+    /// The `on hits` passes trace the rays that hit and no other, once each, and the
+    /// other passes every ray: a tracer that counts its queries, over a torus seen at
+    /// 96x54, as the bench sees its torus (a fifth of the rays hit).
+    #[test]
+    fn the_on_hits_passes_trace_the_rays_that_hit_alone() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        // (closest-hit queries, any-hit queries)
+        struct Counting<'a> {
+            scene: &'a Scene,
+            queries: [AtomicUsize; 2],
+        }
+        impl Tracer for Counting<'_> {
+            fn closest_hit(&self, ray: &Ray) -> Option<crate::Hit> {
+                self.queries[0].fetch_add(1, Ordering::Relaxed);
+                self.scene.closest_hit(ray)
+            }
+            fn any_hit(&self, ray: &Ray) -> bool {
+                self.queries[1].fetch_add(1, Ordering::Relaxed);
+                self.scene.any_hit(ray)
+            }
+            fn normal(&self, ray: &Ray, hit: &crate::Hit) -> DVec3 {
+                self.scene.normal(ray, hit)
+            }
+            fn triangle_id(&self, slot: u32) -> u32 {
+                self.scene.triangle_id(slot)
+            }
+            fn counts(&self) -> crate::scene::SceneCounts {
+                self.scene.counts()
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let view = mesh_scene("torus", &torus_file(dir.path(), 40, 20), (96, 54)).unwrap();
+        let scene = Scene::build(&view.geometry);
+        let rays = camera_rays(&view);
+        let hit_rays = rays_that_hit(&scene, &rays);
+        // The same rays, found one by one in order by the scalar path.
+        let mut scalar = Scene::build(&view.geometry);
+        scalar.set_simd(false);
+        let expected: Vec<Ray> = rays
+            .iter()
+            .filter(|r| scalar.closest_hit(r).is_some())
+            .copied()
+            .collect();
+        assert!(hit_rays == expected, "not the rays that hit, in order");
+        assert!(
+            8 * hit_rays.len() > rays.len() && 2 * hit_rays.len() < rays.len(),
+            "{} of {} rays hit",
+            hit_rays.len(),
+            rays.len()
+        );
+        let tracer = Counting {
+            scene: &scene,
+            queries: [AtomicUsize::new(0), AtomicUsize::new(0)],
+        };
+        let (hits, all) = (hit_rays.len(), rays.len());
+        for (query, expected) in [
+            (Query::ClosestOnHits, [hits, 0]),
+            (Query::AnyHintedOnHits, [0, hits]),
+            (Query::Closest, [all, 0]),
+            (Query::AnyHinted, [0, all]),
+            (Query::Any, [0, all]),
+        ] {
+            let found = trace_pass(&tracer, query.rays(&rays, &hit_rays), query);
+            let queries = tracer
+                .queries
+                .each_ref()
+                .map(|q| q.swap(0, Ordering::Relaxed));
+            assert_eq!((found, queries), (hits, expected), "{query:?}");
+        }
+    }
+
     fn quick_options(threads: &[usize]) -> BenchOptions {
         BenchOptions {
             quick: true,

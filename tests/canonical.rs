@@ -147,6 +147,8 @@ fn bench_traces_the_canonical_scene_with_every_query_and_reports_its_exact_hits(
             "any_mrays",
             "any_unhinted_mrays",
             "any_batch_mrays",
+            "closest_on_hits_mrays",
+            "any_on_hits_mrays",
         ] {
             let rate = figures[column].as_f64().unwrap_or(f64::NAN);
             assert!(rate.is_finite() && rate > 0.0, "{column}: {figures}");
