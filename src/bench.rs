@@ -508,8 +508,9 @@ fn trace_scene(
     let spheres = scene.geometry.spheres.len();
     // Built as a job tracing as many rays as the passes below would be: every ray, every
     // query over every ray, every thread count, every round (the passes over the rays that
-    // hit, found only once a tree is built, trace some of them again). Counted as camera rays for shadow rays too:
-    // a job tracing them traces the camera rays that find their origins as well.
+    // hit, known only once a tree is built, trace some of them again). Counted as camera
+    // rays for shadow rays too: a job tracing them traces the camera rays that find their
+    // origins as well.
     let (width, height) = scene.size;
     let traced = u64::from(width)
         * u64::from(height)
@@ -643,7 +644,7 @@ fn rays_that_hit(scene: &Scene, rays: &[Ray]) -> Vec<Ray> {
 }
 
 /// The queries a throughput column times.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy)]
 enum Query {
     Closest,
     ClosestBatch,
@@ -1191,6 +1192,7 @@ impl BenchReport {
 
     /// Markdown tables, as BENCHMARKS.md shows them.
     pub fn to_markdown(&self) -> String {
+        use std::fmt::Write;
         // `-` where there is nothing to compare (no ray hit).
         let ratio = |a: f64, b: f64| {
             if a > 0.0 && b > 0.0 {
@@ -1199,7 +1201,6 @@ impl BenchReport {
                 "-".to_string()
             }
         };
-        use std::fmt::Write;
         let mut out = String::new();
         let with_embree = self.scenes.iter().any(|s| s.embree.is_some());
         let _ = writeln!(
@@ -1554,7 +1555,6 @@ mod tests {
         }
     }
 
-    /// `--quick` options tracing on `threads`, without Embree.
     /// The `on hits` passes trace the rays that hit and no other, once each, and the
     /// other passes every ray: a tracer that counts its queries, over a torus seen at
     /// 96x54, as the bench sees its torus (a fifth of the rays hit).
@@ -1626,6 +1626,7 @@ mod tests {
         }
     }
 
+    /// `--quick` options tracing on `threads`, without Embree.
     fn quick_options(threads: &[usize]) -> BenchOptions {
         BenchOptions {
             quick: true,
