@@ -679,6 +679,15 @@ impl Query {
     }
 }
 
+// Each query's figures are kept at its place in `Query::ALL`, which `query as usize` names.
+const _: () = {
+    let mut i = 0;
+    while i < Query::ALL.len() {
+        assert!(Query::ALL[i] as usize == i);
+        i += 1;
+    }
+};
+
 /// Traces every ray once with `query`; returns the hit count (so the work is not elided).
 fn trace_pass<T: Tracer>(tracer: &T, rays: &[Ray], query: Query) -> usize {
     match query {
@@ -843,27 +852,19 @@ fn throughputs(
                 .into_iter()
                 .zip(threads)
                 .map(|(columns, &threads)| {
-                    let [
-                        closest,
-                        closest_batch,
-                        any,
-                        any_unhinted,
-                        any_batch,
-                        closest_on_hits,
-                        any_on_hits,
-                    ] = std::array::from_fn(|q| match Query::ALL[q].rays(rays, hit_rays).len() {
+                    let mrays = |query: Query| match query.rays(rays, hit_rays).len() {
                         0 => 0.0,
-                        traced => traced as f64 / median_of(columns[q].clone()) / 1e6,
-                    });
+                        traced => traced as f64 / median_of(columns[query as usize].clone()) / 1e6,
+                    };
                     Throughput {
                         threads,
-                        closest,
-                        closest_batch,
-                        any,
-                        any_unhinted,
-                        any_batch,
-                        closest_on_hits,
-                        any_on_hits,
+                        closest: mrays(Query::Closest),
+                        closest_batch: mrays(Query::ClosestBatch),
+                        any: mrays(Query::AnyHinted),
+                        any_unhinted: mrays(Query::Any),
+                        any_batch: mrays(Query::AnyBatch),
+                        closest_on_hits: mrays(Query::ClosestOnHits),
+                        any_on_hits: mrays(Query::AnyHintedOnHits),
                     }
                 })
                 .collect()
