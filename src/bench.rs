@@ -530,7 +530,8 @@ fn trace_scene(
         Some(light) => shadow_rays(&first, &rays, light),
         None => rays,
     };
-    let hits = count_hits(&first, &rays, |t, r| t.closest_hit(r).is_some());
+    let hit_rays = rays_that_hit(&first, &rays);
+    let hits = hit_rays.len();
     let scene_bytes_per_primitive =
         first.counts().accel_bytes as f64 / (triangles + spheres).max(1) as f64;
     drop(first);
@@ -578,9 +579,6 @@ fn trace_scene(
             }
         }
         let mut ours = build();
-        // Gathered after the timed builds, which so run amid the same memory as before the
-        // bench traced the rays that hit apart.
-        let hit_rays = rays_that_hit(&ours, &rays);
         if options.eight_lane_packets {
             ours.set_wide_leaves(false);
         }
@@ -667,15 +665,26 @@ impl Query {
         Query::AnyHintedOnHits,
     ];
 
-    /// The passes over every ray (the others trace again some of their rays).
-    const OVER_EVERY_RAY: usize = 5;
+    /// How many of the queries trace every ray (the others trace again the rays that hit).
+    const OVER_EVERY_RAY: usize = {
+        let (mut count, mut i) = (0, 0);
+        while i < Query::ALL.len() {
+            if !Query::ALL[i].on_hits() {
+                count += 1;
+            }
+            i += 1;
+        }
+        count
+    };
+
+    /// Whether the query traces the rays that hit alone.
+    const fn on_hits(self) -> bool {
+        matches!(self, Query::ClosestOnHits | Query::AnyHintedOnHits)
+    }
 
     /// The rays the query traces: `hit_rays` (those of `rays` that hit, in order) or all.
     fn rays<'a>(self, rays: &'a [Ray], hit_rays: &'a [Ray]) -> &'a [Ray] {
-        match self {
-            Query::ClosestOnHits | Query::AnyHintedOnHits => hit_rays,
-            _ => rays,
-        }
+        if self.on_hits() { hit_rays } else { rays }
     }
 }
 
