@@ -590,10 +590,41 @@ impl Scene {
             .or(plane)
     }
 
-    /// The closest sphere hit with `ray.tmin < t < tmax`.
+    /// Whether the scene's spheres are few enough for a single ray to test in turn,
+    /// without their tree: no more than a leaf holds. The tree's set-up and box test cost
+    /// a single ray more than so few spheres' own tests (the canonical scene's one sphere
+    /// was traced twice as fast without them); batches keep their packets, whose box test
+    /// turns most rays away before any sphere's division (DEVELOPERS.md, "A single ray
+    /// tests a few spheres in turn").
+    #[inline(always)]
+    fn has_few_spheres(&self) -> bool {
+        self.spheres.len() <= SPHERES_PER_LEAF as usize
+    }
+
+    /// The closest sphere hit with `ray.tmin < t < tmax`: few spheres tested in turn
+    /// ([`Scene::has_few_spheres`]), more searched in their tree.
     #[inline(always)]
     fn closest_sphere(&self, ray: &Ray, mut tmax: f64) -> Option<Hit> {
-        if self.sphere_bvh.is_empty() || !finite(ray) {
+        if !self.has_few_spheres() {
+            return self.closest_sphere_in_tree(ray, tmax);
+        }
+        if !finite(ray) {
+            return None;
+        }
+        let mut best = None;
+        for (i, sphere) in self.spheres.iter().enumerate() {
+            if let Some(t) = sphere.intersect(ray, tmax) {
+                tmax = t;
+                best = Some(self.sphere_hit(t, i as u32));
+            }
+        }
+        best
+    }
+
+    /// [`Scene::closest_sphere`] over the spheres' tree.
+    #[inline(always)]
+    fn closest_sphere_in_tree(&self, ray: &Ray, mut tmax: f64) -> Option<Hit> {
+        if !finite(ray) {
             return None;
         }
         let mut best = None;
@@ -902,20 +933,27 @@ impl Scene {
             || (!self.triangles.bvh.is_empty() && self.any_triangle(ray, hint))
     }
 
-    /// Whether a plane or a sphere is hit, the hint's sphere tested first. Out of line
-    /// and skipped when there are neither: inlined, the spheres' search made every query
-    /// set up its large stack frame, on scenes of triangles only too.
-    #[inline(never)]
+    /// Whether a plane or a sphere is hit.
+    #[inline(always)]
     fn any_analytic(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         crate::plane::any_plane(&self.planes, ray) || self.any_sphere(ray, hint)
     }
 
-    /// Whether a sphere has `ray.tmin < t < ray.tmax`, the hint's sphere tested first.
+    /// Whether a sphere has `ray.tmin < t < ray.tmax`: few spheres tested in turn
+    /// ([`Scene::has_few_spheres`]), more searched in their tree.
     #[inline(always)]
     fn any_sphere(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        if self.sphere_bvh.is_empty() {
-            return false;
+        if !self.has_few_spheres() {
+            return self.any_sphere_in_tree(ray, hint);
         }
+        finite(ray) && (self.spheres.iter()).any(|s| s.intersect(ray, ray.tmax).is_some())
+    }
+
+    /// [`Scene::any_sphere`] over the spheres' tree, the hint's sphere tested first. Out
+    /// of line: inlined, its stack made every query set up a large frame, on scenes
+    /// without spheres too.
+    #[inline(never)]
+    fn any_sphere_in_tree(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         let hits = |i: usize| self.spheres[i].intersect(ray, ray.tmax).is_some();
         if let Some(i) = hint.sphere()
             && i < self.spheres.len()

@@ -1196,32 +1196,45 @@ fn sphere_packets_find_what_single_rays_and_brute_force_find() {
 fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answer() {
     // A NaN drops out of a packet's ranges of origin and direction, and a ray non-finite
     // on every axis has a NaN slab on each (`∞ − ∞`, `0 · ∞`): box bounds then admit
-    // every slot of a node, empty ones too, whose reference leads back to the root. Three
-    // spheres leave most of the root's slots empty; the icosphere adds triangle packets,
-    // and the torus a triangle tree with empty slots (a NaN ray went round it until the
-    // stack overflowed: a lens focused closer than its origin's precision made one).
+    // every slot of a node, empty ones too, whose reference leads back to the root. Six
+    // spheres leave some of their tree's root's slots empty; three are few enough for a
+    // single ray to test one by one, without their tree. The icosphere adds triangle
+    // packets, and the torus a triangle tree with empty slots (a NaN ray went round it
+    // until the stack overflowed: a lens focused closer than its origin's precision made
+    // one).
+    let sphere = |x: f64, y: f64, z: f64, radius: f64| Sphere {
+        center: DVec3::new(x, y, z),
+        radius,
+    };
     let spheres = vec![
-        Sphere {
-            center: DVec3::new(-0.8, 0.0, 0.0),
-            radius: 0.5,
-        },
-        Sphere {
-            center: DVec3::new(0.8, 0.0, 0.0),
-            radius: 0.5,
-        },
-        Sphere {
-            center: DVec3::new(0.0, 0.9, 0.5),
-            radius: 0.4,
-        },
+        sphere(-0.8, 0.0, 0.0, 0.5),
+        sphere(0.8, 0.0, 0.0, 0.5),
+        sphere(0.0, 0.9, 0.5, 0.4),
     ];
     let with_mesh = placed(
         &procedural::icosphere(2),
         DMat4::from_scale(DVec3::splat(0.6)),
     );
-    let only_spheres = SceneGeometry {
+    let few_spheres = SceneGeometry {
         spheres: spheres.clone(),
         ..SceneGeometry::default()
     };
+    let only_spheres = SceneGeometry {
+        spheres: [-1.0, 1.0]
+            .iter()
+            .flat_map(|&y| {
+                spheres
+                    .iter()
+                    .map(move |s| sphere(s.center.x, s.center.y + y, s.center.z, s.radius))
+            })
+            .collect(),
+        ..SceneGeometry::default()
+    };
+    let six = Scene::build(&only_spheres);
+    assert!(
+        six.sphere_bvh().nodes()[0].children.contains(&0),
+        "the six spheres' root has an empty slot"
+    );
     let both = SceneGeometry {
         spheres,
         ..with_mesh.clone()
@@ -1241,7 +1254,7 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
         })
         .collect();
     let kernels: &[bool] = if has_avx2() { &[true, false] } else { &[false] };
-    for (geometry, &simd) in [&only_spheres, &with_mesh, &both, &gapped]
+    for (geometry, &simd) in [&few_spheres, &only_spheres, &with_mesh, &both, &gapped]
         .into_iter()
         .flat_map(|g| kernels.iter().map(move |simd| (g, simd)))
     {
