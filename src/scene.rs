@@ -1028,7 +1028,7 @@ impl Scene {
         self.any_triangle_scalar(ray, hint)
     }
 
-    /// [`Scene::any_triangle`] without AVX2. Out of line, as [`Scene::any_analytic`].
+    /// [`Scene::any_triangle`] without AVX2. Out of line, as [`Scene::any_sphere_in_tree`].
     #[inline(never)]
     fn any_triangle_scalar(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
         let blocks = &self.triangles.blocks;
