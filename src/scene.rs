@@ -608,7 +608,7 @@ impl Scene {
         if !self.has_few_spheres() {
             return self.closest_sphere_in_tree(ray, tmax);
         }
-        if !finite(ray) {
+        if self.spheres.is_empty() || !finite(ray) {
             return None;
         }
         let mut best = None;
@@ -946,7 +946,9 @@ impl Scene {
         if !self.has_few_spheres() {
             return self.any_sphere_in_tree(ray, hint);
         }
-        finite(ray) && (self.spheres.iter()).any(|s| s.intersect(ray, ray.tmax).is_some())
+        !self.spheres.is_empty()
+            && finite(ray)
+            && (self.spheres.iter()).any(|s| s.intersect(ray, ray.tmax).is_some())
     }
 
     /// [`Scene::any_sphere`] over the spheres' tree, the hint's sphere tested first. Out
