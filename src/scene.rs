@@ -605,37 +605,18 @@ impl Scene {
     /// ([`Scene::has_few_spheres`]), more searched in their tree.
     #[inline(always)]
     fn closest_sphere(&self, ray: &Ray, mut tmax: f64) -> Option<Hit> {
-        if !self.has_few_spheres() {
-            return self.closest_sphere_in_tree(ray, tmax);
-        }
         if self.spheres.is_empty() || !finite(ray) {
             return None;
         }
         let mut best = None;
-        for (i, sphere) in self.spheres.iter().enumerate() {
-            if let Some(t) = sphere.intersect(ray, tmax) {
-                tmax = t;
-                best = Some(self.sphere_hit(t, i as u32));
-            }
+        if self.has_few_spheres() {
+            let all = self.spheres.len() as u32;
+            self.nearest_sphere_of(ray, (0, all), &mut tmax, &mut best);
+            return best;
         }
-        best
-    }
-
-    /// [`Scene::closest_sphere`] over the spheres' tree.
-    #[inline(always)]
-    fn closest_sphere_in_tree(&self, ray: &Ray, mut tmax: f64) -> Option<Hit> {
-        if !finite(ray) {
-            return None;
-        }
-        let mut best = None;
         let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
         let leaf = |first, count, tmax: &mut f64| {
-            for i in first..first + count {
-                if let Some(t) = self.spheres[i as usize].intersect(ray, *tmax) {
-                    *tmax = t;
-                    best = Some(self.sphere_hit(t, i));
-                }
-            }
+            self.nearest_sphere_of(ray, (first, count), tmax, &mut best);
         };
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
@@ -645,6 +626,35 @@ impl Scene {
         }
         self.sphere_bvh.closest(&box_ray, &mut tmax, leaf);
         best
+    }
+
+    /// Of the `count` spheres from position `first` of the tree's leaf order, the nearest
+    /// hit with `ray.tmin < t < *tmax`, if any, into `best`, `*tmax` lowered to it.
+    #[inline(always)]
+    fn nearest_sphere_of(
+        &self,
+        ray: &Ray,
+        (first, count): (u32, u32),
+        tmax: &mut f64,
+        best: &mut Option<Hit>,
+    ) {
+        let spheres = &self.spheres[first as usize..(first + count) as usize];
+        for (position, sphere) in (first..).zip(spheres) {
+            if let Some(t) = sphere.intersect(ray, *tmax) {
+                *tmax = t;
+                *best = Some(self.sphere_hit(t, position));
+            }
+        }
+    }
+
+    /// Of the `count` spheres from position `first` of the tree's leaf order, the first
+    /// with a hit `ray.tmin < t < ray.tmax`, if any.
+    #[inline(always)]
+    fn first_sphere_of(&self, ray: &Ray, (first, count): (u32, u32)) -> Option<u32> {
+        let spheres = &self.spheres[first as usize..(first + count) as usize];
+        (first..)
+            .zip(spheres)
+            .find_map(|(position, s)| s.intersect(ray, ray.tmax).is_some().then_some(position))
     }
 
     /// The hit on the sphere at `position` of the tree's leaf order.
@@ -946,9 +956,8 @@ impl Scene {
         if !self.has_few_spheres() {
             return self.any_sphere_in_tree(ray, hint);
         }
-        !self.spheres.is_empty()
-            && finite(ray)
-            && (self.spheres.iter()).any(|s| s.intersect(ray, ray.tmax).is_some())
+        let all = self.spheres.len() as u32;
+        all > 0 && finite(ray) && self.first_sphere_of(ray, (0, all)).is_some()
     }
 
     /// [`Scene::any_sphere`] over the spheres' tree, the hint's sphere tested first. Out
@@ -956,10 +965,9 @@ impl Scene {
     /// without spheres too.
     #[inline(never)]
     fn any_sphere_in_tree(&self, ray: &Ray, hint: &mut AnyHitHint) -> bool {
-        let hits = |i: usize| self.spheres[i].intersect(ray, ray.tmax).is_some();
         if let Some(i) = hint.sphere()
             && i < self.spheres.len()
-            && hits(i)
+            && self.first_sphere_of(ray, (i as u32, 1)).is_some()
         {
             return true;
         }
@@ -969,7 +977,7 @@ impl Scene {
         let box_ray = BoxRay::new(ray.origin.to_array(), ray.direction.to_array(), ray.tmin);
         let mut found = None;
         let leaf = |first, count| {
-            found = (first..first + count).find(|&i| hits(i as usize));
+            found = self.first_sphere_of(ray, (first, count));
             found.is_some()
         };
         #[cfg(target_arch = "x86_64")]

@@ -1220,12 +1220,13 @@ fn non_finite_rays_find_nothing_alone_or_in_batches_and_spoil_no_other_rays_answ
         ..SceneGeometry::default()
     };
     let only_spheres = SceneGeometry {
-        spheres: [-1.0, 1.0]
-            .iter()
-            .flat_map(|&y| {
-                spheres
-                    .iter()
-                    .map(move |s| sphere(s.center.x, s.center.y + y, s.center.z, s.radius))
+        spheres: [-DVec3::Y, DVec3::Y]
+            .into_iter()
+            .flat_map(|shift| {
+                (spheres.iter()).map(move |&s| Sphere {
+                    center: s.center + shift,
+                    ..s
+                })
             })
             .collect(),
         ..SceneGeometry::default()
