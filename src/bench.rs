@@ -416,6 +416,10 @@ const BUILDS: usize = 5;
 const BUILD_SECONDS: f64 = 0.25;
 /// See [`BUILDS`].
 const MOST_BUILDS: usize = 200;
+/// How long a tracer's turn of timed builds lasts, at least (one build, however long).
+/// Short, so that a slow spell of the machine, which lasts tens of milliseconds to
+/// minutes, lands on every tracer's builds rather than on one's.
+const BUILD_TURN_SECONDS: f64 = 0.05;
 
 /// Whether `times` (seconds) are builds enough ([`BUILDS`]).
 fn builds_enough(times: &[f64]) -> bool {
@@ -423,14 +427,34 @@ fn builds_enough(times: &[f64]) -> bool {
         || (times.len() >= BUILDS && times.iter().sum::<f64>() >= BUILD_SECONDS)
 }
 
-/// Times `build` into `times` until [`builds_enough`], each build dropped before the next.
-fn time_builds<T>(times: &mut Vec<f64>, build: impl Fn() -> T) {
-    while !builds_enough(times) {
-        let start = Instant::now();
-        let built = build();
-        times.push(start.elapsed().as_secs_f64());
-        drop(built);
+/// Times each of `builders` (each builds a scene and drops it) until [`builds_enough`],
+/// in turns: a turn is one untimed build, then timed builds for at least
+/// [`BUILD_TURN_SECONDS`]. The untimed build lets a tracer's memory settle after the
+/// other's: without it, Embree's torus builds (one a turn) read 0.18–0.31 s; with it,
+/// 0.17–0.24 s after the first turn (DEVELOPERS.md, "How the bench measures"). Returns
+/// each builder's times, in seconds.
+fn time_builds_in_turns(
+    builders: &mut [&mut dyn FnMut() -> Result<(), String>],
+) -> Result<Vec<Vec<f64>>, String> {
+    let mut times = vec![Vec::new(); builders.len()];
+    while times.iter().any(|t| !builds_enough(t)) {
+        for (build, times) in builders.iter_mut().zip(&mut times) {
+            if builds_enough(times) {
+                continue;
+            }
+            build()?;
+            let turn = Instant::now();
+            loop {
+                let start = Instant::now();
+                build()?;
+                times.push(start.elapsed().as_secs_f64());
+                if turn.elapsed().as_secs_f64() >= BUILD_TURN_SECONDS || builds_enough(times) {
+                    break;
+                }
+            }
+        }
     }
+    Ok(times)
 }
 
 /// The pixel-centre rays, in 8 × 8 groups of neighbouring pixels (as the renderer traces
@@ -518,9 +542,8 @@ fn trace_scene(
     let build = || Scene::build_for_rays(&scene.geometry, traced);
 
     // The first build sets the peak (loading and building); later ones reuse the memory.
-    let start = Instant::now();
+    // Not timed: the timed builds are all warm, Embree's too.
     let first = build();
-    let first_build = start.elapsed().as_secs_f64();
     let traced_preset = (triangles > 0).then(|| first.triangle_tree().preset());
     let peak_bytes_per_triangle = scene.peak_baseline.and_then(|base| {
         Some((peak_memory()?.saturating_sub(base)) as f64 / triangles.max(1) as f64)
@@ -553,31 +576,43 @@ fn trace_scene(
     let compute_loop_scaling;
     let mut default_build_s = None;
     let (raybatch, embree) = {
-        #[cfg(feature = "embree")]
-        let mut reference = None;
-        // Our builds, then Embree's, each with no other scene alive. (Taken in turns,
-        // Embree's torus build read 0.36–0.46 s against 0.23–0.29 s after ours; we have not
-        // found why, and this is the order of the earlier tables.)
-        let mut build_times = [vec![first_build], Vec::new()];
-        time_builds(&mut build_times[0], build);
+        // Each build is dropped before the next, so that no other scene is alive.
         let default = BuildPreset::default();
-        if traced_preset.is_some_and(|preset| preset != default) {
-            let mut times = Vec::new();
-            time_builds(&mut times, || Scene::build_with(&scene.geometry, default));
-            default_build_s = Some(median_of(times));
+        let mut traced_build = || {
+            drop(build());
+            Ok(())
+        };
+        let mut default_build = || {
+            drop(Scene::build_with(&scene.geometry, default));
+            Ok(())
+        };
+        let mut builders: Vec<&mut dyn FnMut() -> Result<(), String>> = vec![&mut traced_build];
+        let with_default = traced_preset.is_some_and(|preset| preset != default);
+        if with_default {
+            builders.push(&mut default_build);
         }
+        #[cfg(feature = "embree")]
+        let mut embree_build = || {
+            crate::embree::EmbreeScene::build(&scene.geometry)
+                .map(drop)
+                .map_err(|e| e.to_string())
+        };
         #[cfg(feature = "embree")]
         if options.embree {
-            while !builds_enough(&build_times[1]) {
-                drop(reference.take());
-                let start = Instant::now();
-                reference = Some(
-                    crate::embree::EmbreeScene::build(&scene.geometry)
-                        .map_err(|e| e.to_string())?,
-                );
-                build_times[1].push(start.elapsed().as_secs_f64());
-            }
+            builders.push(&mut embree_build);
         }
+        let mut times = time_builds_in_turns(&mut builders)?.into_iter();
+        let traced_times = times.next().expect("ours is timed");
+        if with_default {
+            default_build_s = times.next().map(median_of);
+        }
+        let build_times = std::iter::once(traced_times).chain(times);
+        #[cfg(feature = "embree")]
+        let reference = if options.embree {
+            Some(crate::embree::EmbreeScene::build(&scene.geometry).map_err(|e| e.to_string())?)
+        } else {
+            None
+        };
         let mut ours = build();
         if options.eight_lane_packets {
             ours.set_wide_leaves(false);
@@ -1371,6 +1406,37 @@ mod tests {
                 len >= 64 && len.is_multiple_of(64) && len <= 4096,
                 "{rays}: {len}"
             );
+        }
+    }
+
+    /// Builds are timed in turns, each turn one untimed build and then timed ones, until
+    /// every builder has builds enough: builders of 10 ms each take several turns (a turn
+    /// lasts 50 ms), every run of one builder's calls is a turn of at least two, and each
+    /// builder reports one time fewer than its calls per turn.
+    #[test]
+    fn builds_are_timed_in_turns_each_after_an_untimed_build() {
+        let calls = std::cell::RefCell::new(Vec::new());
+        let builder = |who: usize| {
+            let calls = &calls;
+            move || {
+                calls.borrow_mut().push(who);
+                std::thread::sleep(std::time::Duration::from_millis(10));
+                Ok(())
+            }
+        };
+        let (mut a, mut b) = (builder(0), builder(1));
+        let times = time_builds_in_turns(&mut [&mut a, &mut b]).unwrap();
+        let calls = calls.into_inner();
+        let mut turns = [0; 2];
+        for run in calls.chunk_by(|x, y| x == y) {
+            assert!(run.len() >= 2, "a turn of one call: {calls:?}");
+            turns[run[0]] += 1;
+        }
+        for who in 0..2 {
+            assert!(builds_enough(&times[who]), "{who}: {:?}", times[who]);
+            assert!(turns[who] >= 2, "{who} built in one turn: {calls:?}");
+            let made = calls.iter().filter(|&&c| c == who).count();
+            assert_eq!(times[who].len(), made - turns[who], "{calls:?}");
         }
     }
 
