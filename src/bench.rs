@@ -1411,8 +1411,9 @@ mod tests {
 
     /// Builds are timed in turns, each turn one untimed build and then timed ones, until
     /// every builder has builds enough: builders of 10 ms each take several turns (a turn
-    /// lasts 50 ms), every run of one builder's calls is a turn of at least two, and each
-    /// builder reports one time fewer than its calls per turn.
+    /// lasts 50 ms), every run of one builder's calls holds at least two, and each builder
+    /// reports at least one time fewer than its calls per run. (A run may hold two turns,
+    /// when the other builder had enough first.)
     #[test]
     fn builds_are_timed_in_turns_each_after_an_untimed_build() {
         let calls = std::cell::RefCell::new(Vec::new());
@@ -1436,7 +1437,7 @@ mod tests {
             assert!(builds_enough(&times[who]), "{who}: {:?}", times[who]);
             assert!(turns[who] >= 2, "{who} built in one turn: {calls:?}");
             let made = calls.iter().filter(|&&c| c == who).count();
-            assert_eq!(times[who].len(), made - turns[who], "{calls:?}");
+            assert!(times[who].len() <= made - turns[who], "{calls:?}");
         }
     }
 
