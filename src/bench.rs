@@ -429,10 +429,10 @@ fn builds_enough(times: &[f64]) -> bool {
 
 /// Times each of `builders` (each builds a scene and drops it) until [`builds_enough`],
 /// in turns: a turn is one untimed build, then timed builds for at least
-/// [`BUILD_TURN_SECONDS`]. The untimed build lets a tracer's memory settle after the
-/// other's: without it, Embree's torus builds (one a turn) read 0.18–0.31 s; with it,
-/// 0.17–0.24 s after the first turn (DEVELOPERS.md, "How the bench measures"). Returns
-/// each builder's times, in seconds.
+/// [`BUILD_TURN_SECONDS`]. A build straight after the other tracer's can read slow, for
+/// reasons not found: without the untimed build, Embree's torus builds (one a turn) read
+/// 0.18–0.31 s; with it, 0.17–0.24 s after the first turn (DEVELOPERS.md, "How the bench
+/// measures"). Returns each builder's times, in seconds.
 fn time_builds_in_turns(
     builders: &mut [&mut dyn FnMut() -> Result<(), String>],
 ) -> Result<Vec<Vec<f64>>, String> {
